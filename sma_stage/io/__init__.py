@@ -1,0 +1,1 @@
+"""Reading and writing data: CSV, rosbag2, parameter files; every write is atomic."""
