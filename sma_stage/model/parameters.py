@@ -1,0 +1,191 @@
+"""GPI model parameters a1..a11 (the source paper's eqs 4-5) and their YAML model file."""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from sma_stage.errors import InputError
+from sma_stage.io.atomic import atomic_write_text
+
+PARAMETER_NAMES: tuple[str, ...] = tuple(f"a{k}" for k in range(1, 12))
+MODEL_KIND = "gpi"
+DEFAULT_OPERATORS = 10
+MAX_OPERATORS = 1000
+
+
+@dataclass(frozen=True)
+class GPIParameters:
+    """Envelopes gl = a1 tanh(a2 v + a3) + a4, gr = a5 tanh(a6 v + a7) + a8 [output unit];
+    thresholds r_i = a9 i; density p(r) = a10 exp(-a11 r). Input v in A."""
+
+    a1: float
+    a2: float
+    a3: float
+    a4: float
+    a5: float
+    a6: float
+    a7: float
+    a8: float
+    a9: float
+    a10: float
+    a11: float
+    output_unit: str = "m"
+
+    def __post_init__(self) -> None:
+        for name in PARAMETER_NAMES:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+                raise InputError(f"GPI parameter {name} must be a number, got {value!r}")
+            if not math.isfinite(float(value)):
+                raise InputError(f"GPI parameter {name} must be finite, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if self.a9 <= 0.0:
+            raise InputError(f"GPI parameter a9 (threshold step) must be > 0, got {self.a9!r}")
+        if not isinstance(self.output_unit, str) or not self.output_unit.strip():
+            raise InputError(f"output_unit must be a non-empty string, got {self.output_unit!r}")
+
+    def as_array(self) -> np.ndarray:
+        """The eleven parameters a1..a11 as a float array."""
+        return np.array([getattr(self, name) for name in PARAMETER_NAMES])
+
+    @classmethod
+    def from_array(cls, values: np.ndarray, output_unit: str = "m") -> GPIParameters:
+        """Parameters from eleven values a1..a11."""
+        values = np.asarray(values, dtype=float).ravel()
+        if values.size != len(PARAMETER_NAMES):
+            raise InputError(f"expected {len(PARAMETER_NAMES)} GPI parameters, got {values.size}")
+        return cls(*values.tolist(), output_unit=output_unit)
+
+    def to_dict(self) -> dict[str, float]:
+        """The eleven parameters as a name-to-value mapping (output_unit left out)."""
+        return {name: getattr(self, name) for name in PARAMETER_NAMES}
+
+    @classmethod
+    def from_dict(cls, values: dict, output_unit: str = "m") -> GPIParameters:
+        """Parameters from a mapping holding a1..a11; unknown or missing names are refused."""
+        if not isinstance(values, dict):
+            raise InputError(f"GPI parameters must be a mapping of a1..a11, got {type(values).__name__}")
+        missing = [name for name in PARAMETER_NAMES if name not in values]
+        unknown = sorted(set(values) - set(PARAMETER_NAMES))
+        if missing:
+            raise InputError(f"GPI parameters missing: {', '.join(missing)}")
+        if unknown:
+            raise InputError(f"unknown GPI parameters: {', '.join(map(str, unknown))}")
+        return cls(**{name: values[name] for name in PARAMETER_NAMES}, output_unit=output_unit)
+
+    def replace(self, **changes: float | str) -> GPIParameters:
+        """A copy with some fields changed (validated again)."""
+        values = asdict(self)
+        values.update(changes)
+        return GPIParameters(**values)
+
+    def envelope_left(self, v: np.ndarray | float) -> np.ndarray:
+        """gl(v) = a1 tanh(a2 v + a3) + a4, the loading envelope [output unit]; v in A."""
+        return self.a1 * np.tanh(self.a2 * np.asarray(v, dtype=float) + self.a3) + self.a4
+
+    def envelope_right(self, v: np.ndarray | float) -> np.ndarray:
+        """gr(v) = a5 tanh(a6 v + a7) + a8, the unloading envelope [output unit]; v in A."""
+        return self.a5 * np.tanh(self.a6 * np.asarray(v, dtype=float) + self.a7) + self.a8
+
+    def thresholds(self, operators: int) -> np.ndarray:
+        """Thresholds r_i = a9 i for i = 0..operators-1 [output unit]."""
+        return self.a9 * np.arange(check_operators(operators), dtype=float)
+
+    def densities(self, operators: int) -> np.ndarray:
+        """Weights p(r_i) = a10 exp(-a11 r_i) for each threshold [dimensionless]."""
+        return self.a10 * np.exp(-self.a11 * self.thresholds(operators))
+
+    def invertibility_problems(self, operators: int = DEFAULT_OPERATORS) -> list[str]:
+        """Why the model is not a monotone increasing map of the input (empty when it is)."""
+        problems = []
+        if self.a1 * self.a2 <= 0.0:
+            problems.append("gl is not increasing (a1*a2 <= 0)")
+        if self.a5 * self.a6 <= 0.0:
+            problems.append("gr is not increasing (a5*a6 <= 0)")
+        if self.a10 <= 0.0:
+            problems.append(f"density p(r) = a10 exp(-a11 r) is not positive (a10 = {self.a10:g})")
+        elif not np.all(np.isfinite(self.densities(operators))):
+            problems.append("density overflows at the largest threshold (a11 too negative)")
+        return problems
+
+    def to_yaml(self, path: str | os.PathLike, operators: int = DEFAULT_OPERATORS,
+                metadata: dict | None = None) -> None:
+        """Write a model file (atomically): kind, output unit, operator count, a1..a11, metadata."""
+        atomic_write_text(path, model_file_text(self, operators, metadata))
+
+    @classmethod
+    def from_yaml(cls, path: str | os.PathLike) -> GPIParameters:
+        """Parameters from a model file written by to_yaml."""
+        return load_model_file(path).parameters
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """What a model file holds: the parameters, the operator count and free-form metadata."""
+
+    parameters: GPIParameters
+    operators: int
+    metadata: dict
+
+
+def check_operators(operators: int) -> int:
+    """The operator count as an int, refused unless 1 <= operators <= MAX_OPERATORS."""
+    if isinstance(operators, bool) or not isinstance(operators, (int, np.integer)):
+        raise InputError(f"operator count must be an integer, got {operators!r}")
+    if not 1 <= operators <= MAX_OPERATORS:
+        raise InputError(f"operator count must be between 1 and {MAX_OPERATORS}, got {operators}")
+    return int(operators)
+
+
+def model_file_text(params: GPIParameters, operators: int, metadata: dict | None = None) -> str:
+    """The YAML text of a model file."""
+    document = {
+        "kind": MODEL_KIND,
+        "output_unit": params.output_unit,
+        "operators": check_operators(operators),
+        "parameters": params.to_dict(),
+    }
+    if metadata:
+        document["metadata"] = metadata
+    header = "# sma_stage GPI model: y = sum_i p(r_i) S_ri[v], input in A, output in output_unit\n"
+    return header + yaml.safe_dump(document, sort_keys=False)
+
+
+def load_model_file(path: str | os.PathLike) -> ModelFile:
+    """Read and validate a model file; any problem is one InputError line naming the file."""
+    path = Path(path)
+    try:
+        document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"model file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(f"cannot read model file {path}: {error}") from None
+    except yaml.YAMLError as error:
+        first_line = str(error).splitlines()[0] if str(error) else "invalid YAML"
+        raise InputError(f"model file {path} is not valid YAML: {first_line}") from None
+    try:
+        return parse_model_document(document)
+    except InputError as error:
+        raise InputError(f"model file {path}: {error}") from None
+
+
+def parse_model_document(document: object) -> ModelFile:
+    """A ModelFile from an already parsed YAML document."""
+    if not isinstance(document, dict):
+        raise InputError("expected a mapping with kind, output_unit, operators and parameters")
+    kind = document.get("kind", MODEL_KIND)
+    if kind != MODEL_KIND:
+        raise InputError(f"model kind {kind!r} is not supported (expected {MODEL_KIND!r})")
+    params = GPIParameters.from_dict(document.get("parameters"), output_unit=document.get("output_unit", "m"))
+    operators = check_operators(document.get("operators", DEFAULT_OPERATORS))
+    metadata = document.get("metadata") or {}
+    if not isinstance(metadata, dict):
+        raise InputError("metadata must be a mapping")
+    return ModelFile(params, operators, metadata)
+
