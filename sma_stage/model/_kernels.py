@@ -141,14 +141,7 @@ def exact_inverse(targets: np.ndarray, v_start: float, v_low: float, v_high: flo
 def classical_play_step(x: float, r: np.ndarray, states: np.ndarray) -> None:
     """Classical play operators F_r: z = max(x - r, min(x + r, z)), in place."""
     for j in range(r.size):
-        z = states[j]
-        upper = x + r[j]
-        if z > upper:
-            z = upper
-        lower = x - r[j]
-        if z < lower:
-            z = lower
-        states[j] = z
+        states[j] = max(x - r[j], min(x + r[j], states[j]))
 
 
 @numba.njit(cache=True, nogil=True)
