@@ -28,7 +28,7 @@ def as_signal(values: np.ndarray, name: str) -> np.ndarray:
 
 
 def initial_states(params: GPIParameters, operators: int, initial: np.ndarray | None) -> np.ndarray:
-    """Operator states before the first sample [output unit]: zeros, so z(0) = s(v(0), 0), or a copy of initial."""
+    """Operator states before the first sample [output unit]: zeros (so z(0) = s(v(0), 0)) or initial."""
     operators = check_operators(operators)
     if initial is None:
         return np.zeros(operators)
@@ -42,7 +42,7 @@ def model_arrays(params: GPIParameters, operators: int) -> tuple[np.ndarray, np.
     """(theta = a1..a8 as an array, thresholds r [output unit], weights p) for the kernels."""
     weights = params.densities(operators)
     if not np.all(np.isfinite(weights)):
-        raise InputError("density p(r) = a10 exp(-a11 r) overflows: a11 is too negative for this many operators")
+        raise InputError("density p(r) = a10 exp(-a11 r) overflows: a11 too negative for this many operators")
     return params.as_array()[:8].copy(), params.thresholds(operators), weights
 
 

@@ -13,7 +13,7 @@ from sma_stage.model.forward import as_signal, forward, initial_states, model_ar
 from sma_stage.model.parameters import DEFAULT_OPERATORS, GPIParameters, check_operators
 
 METHODS = ("exact", "analytic")
-RELATIVE_TOLERANCE = 1e-9
+RELATIVE_TOLERANCE = 1e-10  # solver stopping rule, ten times inside the 1e-9 promised
 SATURATED_TANH_ARGUMENT = 20.0
 
 
@@ -143,8 +143,9 @@ class GPIInverseStream:
         inputs, clipped = np.empty_like(targets), np.empty_like(targets)
         low, high = self.input_range
         if self.method == "exact":
-            self._input = _kernels.exact_inverse(targets, self._input, low, high, self._tolerance, self._theta,
-                                                 self._thresholds, self._weights, self._states, inputs, clipped)
+            self._input = _kernels.exact_inverse(targets, self._input, low, high, self._tolerance,
+                                                 self._theta, self._thresholds, self._weights, self._states,
+                                                 inputs, clipped)
         else:
             _kernels.analytic_inverse(targets, self._direction, low, high, self._theta, self._r_hat,
                                       self._p_hat, self._plays, inputs, clipped)
