@@ -1,0 +1,72 @@
+"""gpi_tool: fit, diagnose, simulate and reproduce the paper from the command line.
+
+Every bad input ends with exit status 2 and one line on standard error; with --json the JSON
+document is the only thing on standard output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from sma_stage.errors import InputError
+from sma_stage.model.parameters import DEFAULT_OPERATORS, check_operators
+
+EXIT_BAD_INPUT = 2
+
+
+def operator_count(text: str) -> int:
+    """argparse type for --operators."""
+    try:
+        return check_operators(int(text))
+    except (ValueError, InputError) as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with one subparser per command."""
+    parser = argparse.ArgumentParser(prog="gpi_tool", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    paper = commands.add_parser("paper", help="evaluate the paper's Table 1 and write what it finds")
+    paper.add_argument("--operators", type=operator_count, default=DEFAULT_OPERATORS)
+    paper.add_argument("--out", type=Path, default=Path("out/paper"), help="folder for plots and summary")
+    paper.add_argument("--json", action="store_true", help="print the findings as JSON")
+    paper.set_defaults(handler=run_paper)
+    return parser
+
+
+def run_paper(args: argparse.Namespace) -> dict:
+    """gpi_tool paper."""
+    from sma_stage.commands.paper import evaluate_paper
+
+    report = evaluate_paper(args.out, args.operators)
+    if not args.json:
+        print((args.out / "paper_summary.md").read_text(encoding="utf-8"))
+    return report
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point: run one command; InputError and OSError become one line and exit status 2."""
+    args = build_parser().parse_args(argv)
+    try:
+        result = args.handler(args)
+    except InputError as error:
+        print(f"gpi_tool: error: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as error:
+        print(f"gpi_tool: error: {error.strerror or error}: {error.filename or ''}".rstrip(": "), file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("gpi_tool: interrupted", file=sys.stderr)
+        return 130
+    if getattr(args, "json", False):
+        json.dump(result, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
