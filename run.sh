@@ -39,12 +39,12 @@ setup_fingerprint() {
 
 ensure_venv() {
     if [ ! -x "$PY" ] || ! is_python311 "$PY"; then
-        say "creating .venv with Python 3.11"
+        local python
+        python="$(find_python311)"
+        say "creating .venv with $python"
         rm -rf "$VENV"
-        "$(find_python311)" -m venv "$VENV"
+        "$python" -m venv "$VENV"
     fi
-    # The ROS wheels put package.xml files under .venv/share: keep colcon from crawling into it.
-    touch "$VENV/COLCON_IGNORE"
 
     local fingerprint
     fingerprint="$(setup_fingerprint)"
@@ -53,10 +53,10 @@ ensure_venv() {
     fi
     say "installing the pinned requirements and sma_stage into .venv (the first time takes a few minutes)"
     rm -f "$STAMP"
-    "$PY" -m pip install --quiet "pip==$PIP_VERSION"
-    "$PY" -m pip install --quiet -r "$ROOT/requirements-dev.txt"
+    "$PY" -m pip install -qq "pip==$PIP_VERSION"
+    "$PY" -m pip install -qq -r "$ROOT/requirements-dev.txt"
     # Editable (PEP 660): console scripts land in .venv/bin, the code is read from the working tree.
-    "$PY" -m pip install --quiet --no-deps --no-build-isolation --editable "$ROOT"
+    "$PY" -m pip install -qq --no-deps --no-build-isolation --editable "$ROOT"
     echo "$fingerprint" >"$STAMP"
 }
 
