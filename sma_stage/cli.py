@@ -35,7 +35,38 @@ def build_parser() -> argparse.ArgumentParser:
     paper.add_argument("--out", type=Path, default=Path("out/paper"), help="folder for plots and summary")
     paper.add_argument("--json", action="store_true", help="print the findings as JSON")
     paper.set_defaults(handler=run_paper)
+    fit = commands.add_parser("fit", help="fit the GPI model to measured data")
+    add_data_arguments(fit, validate_required=False)
+    fit.set_defaults(handler=run_identify_command("run_fit"))
+    diagnose = commands.add_parser("diagnose", help="fit, find what the model lacks, add it, report before/after")
+    add_data_arguments(diagnose, validate_required=True)
+    diagnose.set_defaults(handler=run_identify_command("run_diagnose"))
     return parser
+
+
+def add_data_arguments(parser: argparse.ArgumentParser, validate_required: bool) -> None:
+    """DATA, --validate and the options that say how to read them, --operators, --out, --json."""
+    parser.add_argument("data", type=Path, metavar="DATA", help="CSV file (t,input,output) or rosbag2 directory")
+    parser.add_argument("--validate", type=Path, metavar="DATA", required=validate_required,
+                        help="validation data, same form as DATA")
+    parser.add_argument("--operators", type=operator_count, default=None,
+                        help="operator count (default: chosen from the data)")
+    parser.add_argument("--columns", help='CSV column names, e.g. "t=time,input=current,output=pos" (t= for index)')
+    parser.add_argument("--input-topic", default="current_cmd", help="bag topic of the input (std_msgs/Float64)")
+    parser.add_argument("--output-topic", default="joint_states", help="bag topic of the output (JointState)")
+    parser.add_argument("--joint", default="stage_x", help="joint name in the JointState messages")
+    parser.add_argument("--unit", default="m", help="unit of the output column (default m)")
+    parser.add_argument("--out", type=Path, default=Path("out/identification"), help="folder for the results")
+    parser.add_argument("--json", action="store_true", help="print the JSON report (and nothing else) on stdout")
+
+
+def run_identify_command(name: str):
+    """A handler that imports the identification code only when the command runs."""
+    def handler(args: argparse.Namespace) -> dict:
+        from sma_stage.commands import identify
+
+        return getattr(identify, name)(args)
+    return handler
 
 
 def run_paper(args: argparse.Namespace) -> dict:

@@ -1,0 +1,128 @@
+"""The identification report: the design's JSON document, a Markdown summary and PNG figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from sma_stage.identify.diagnosis import Diagnosis
+from sma_stage.identify.fit import FitResult
+from sma_stage.identify.metrics import ErrorMetrics
+from sma_stage.io.atomic import atomic_write_text
+from sma_stage.io.series import Series
+from sma_stage.model.parameters import MODEL_KIND
+
+
+def fit_report(fit: FitResult, validation: ErrorMetrics | None, validation_source: str) -> dict:
+    """The JSON document's model, identification, validation and fit_seconds keys."""
+    return {
+        "model": {
+            "kind": MODEL_KIND,
+            "operators": fit.operators,
+            "output_unit": fit.parameters.output_unit,
+            "parameters": fit.parameters.to_dict(),
+            "standard_errors": dict(fit.standard_errors),
+        },
+        "identification": fit.identification.to_dict(),
+        "validation": validation.to_dict() if validation else None,
+        "validation_source": validation_source,
+        "fit_seconds": fit.seconds,
+    }
+
+
+def diagnosis_report(diagnosis: Diagnosis, validation_source: str) -> dict:
+    """The whole JSON document: the base fit, its validation, and the diagnosis block."""
+    report = fit_report(diagnosis.base, diagnosis.before, validation_source)
+    report["diagnosis"] = diagnosis.to_dict()
+    return report
+
+
+def write_json(path: Path, report: dict) -> None:
+    """The report as indented JSON, atomically."""
+    atomic_write_text(path, json.dumps(report, indent=2) + "\n")
+
+
+def markdown_summary(report: dict, title: str) -> str:
+    """A person's one-page reading of the report."""
+    model = report["model"]
+    lines = [f"# {title}", "", f"GPI model, {model['operators']} operators, output in {model['output_unit']}.", "",
+             "| parameter | value | standard error |", "|---|---|---|"]
+    for name, value in model["parameters"].items():
+        lines.append(f"| {name} | {value:.6g} | {model['standard_errors'].get(name, float('nan')):.3g} |")
+    lines += ["", "| data | samples | RMS error [% of span] | max error [% of span] |", "|---|---|---|---|"]
+    for key in ("identification", "validation"):
+        if report.get(key):
+            errors = report[key]
+            lines.append(f"| {key} | {errors['samples']} | {errors['rms_pct']:.3f} | {errors['max_pct']:.3f} |")
+    lines += ["", f"Validation data: {report['validation_source']}. Fit time: {report['fit_seconds']:.2f} s."]
+    if "diagnosis" in report:
+        lines += diagnosis_markdown(report["diagnosis"])
+    return "\n".join(lines) + "\n"
+
+
+def diagnosis_markdown(diagnosis: dict) -> list[str]:
+    """The diagnosis part of the summary: the effect, the evidence, the candidates."""
+    before, after = diagnosis["before"]["validation"], diagnosis["after"]["validation"]
+    lines = ["", "## Diagnosis", "", f"Effect the GPI lacks: **{diagnosis['effect']}** "
+             f"{diagnosis['parameters'] if diagnosis['parameters'] else ''}", "",
+             f"Validation error before: RMS {before['rms_pct']:.3f} %, max {before['max_pct']:.3f} %; "
+             f"after: RMS {after['rms_pct']:.3f} %, max {after['max_pct']:.3f} %.", "",
+             "| residual test | value and threshold |", "|---|---|"]
+    lines += [f"| {name} | {text} |" for name, text in diagnosis["evidence"].items()]
+    lines += ["", "| candidate | parameters | validation RMS % | delta BIC | kept | why |", "|---|---|---|---|---|---|"]
+    for candidate in diagnosis.get("candidates", []):
+        parameters = ", ".join(f"{key} = {value:.4g}" for key, value in candidate["parameters"].items())
+        lines.append(f"| {candidate['effect']} | {parameters} | {candidate['validation']['rms_pct']:.3f} | "
+                     f"{candidate['delta_bic']:.1f} | {'yes' if candidate['accepted'] else 'no'} | "
+                     f"{candidate['reason']} |")
+    return lines
+
+
+def write_fit_figures(path: Path, ident: Series, fit: FitResult, valid: Series | None,
+                      valid_predicted: np.ndarray | None) -> None:
+    """Measured and model loops and the residual against time, for identification (and validation)."""
+    from sma_stage.plots import Panel, save_panels
+
+    unit = fit.parameters.output_unit
+    panels = [
+        Panel("identification: loop", ident.input, [("measured", ident.output), ("model", fit.predicted)],
+              "input [A]", f"output [{unit}]"),
+        Panel("identification: residual", ident.t, [("measured - model", fit.residual)], "time [s]", unit),
+    ]
+    if valid is not None and valid_predicted is not None:
+        panels += [
+            Panel("validation: loop", valid.input, [("measured", valid.output), ("model", valid_predicted)],
+                  "input [A]", f"output [{unit}]"),
+            Panel("validation: residual", valid.t, [("measured - model", valid.output - valid_predicted)],
+                  "time [s]", unit),
+        ]
+    save_panels(path, panels, columns=2)
+
+
+def write_diagnosis_figures(out_dir: Path, valid: Series, diagnosis: Diagnosis, unit: str) -> list[Path]:
+    """Loops and residuals before and after the added effect, and the residual tests with their bands."""
+    from sma_stage.plots import Panel, save_panels
+
+    before, after = diagnosis.validation_predicted_before, diagnosis.validation_predicted_after
+    label = f"GPI + {diagnosis.effect}" if diagnosis.effect != "none" else "GPI (nothing added)"
+    loops = [
+        Panel("validation loop: plain GPI", valid.input, [("measured", valid.output), ("GPI", before)],
+              "input [A]", f"output [{unit}]"),
+        Panel(f"validation loop: {label}", valid.input, [("measured", valid.output), (label, after)],
+              "input [A]", f"output [{unit}]"),
+        Panel("validation residual against time", valid.t,
+              [("plain GPI", valid.output - before), (label, valid.output - after)], "time [s]", unit),
+    ]
+    tests = diagnosis.tests_before
+    correlations = [
+        Panel("residual autocorrelation (plain GPI)", tests.autocorrelation_lags_s,
+              [("autocorrelation", tests.autocorrelation)], "lag [s]", "correlation", band=tests.band),
+        Panel("residual-input cross-correlation (plain GPI)", tests.cross_correlation_lags_s,
+              [("cross-correlation", tests.cross_correlation)], "lag [s]", "correlation", band=tests.band),
+    ]
+    paths = [out_dir / "diagnosis_loops.png", out_dir / "diagnosis_correlations.png"]
+    save_panels(paths[0], loops, columns=3)
+    save_panels(paths[1], correlations, columns=2, kind="line")
+    return paths
