@@ -1,0 +1,411 @@
+"""GPI identification: bounded nonlinear least squares (trust-region reflective, the paper's lsqnonlin)
+with an analytic Jacobian and variable projection of the linear parameters.
+
+The output is linear in the density scale a10 and in any extra regressor columns, so those are solved
+by linear least squares at every step and the search runs over the nonlinear parameters only
+(Kaufman's approximation of the projected Jacobian). The model has one exact scale symmetry:
+multiplying a1, a4, a5, a8, a9 by s and dividing a10, a11 by s leaves the output unchanged. The search
+holds a1 fixed to remove it, and the result is reported in the normalised form where the densities
+sum to 1 (so the envelopes are in the output's unit and scale), see `normalized`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from sma_stage.errors import InputError
+from sma_stage.identify._sensitivity import SENSITIVITY_COLUMNS, play_sensitivities
+from sma_stage.identify.initial_guess import start_points
+from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.model.forward import as_signal, forward, initial_states
+from sma_stage.model.parameters import PARAMETER_NAMES, GPIParameters, check_operators
+
+MIN_SAMPLES = 20
+OPERATOR_CANDIDATES = (5, 10, 15, 20)
+OPERATOR_MARGIN = 0.02  # operators=None: smallest count whose RMS error is within 2 % of the best
+DEFAULT_STARTS = 4
+DEFAULT_MAX_ITERATIONS = 200
+SCREEN_SAMPLES = 3000  # multi-start screening runs on an evenly thinned copy of at most this size
+SCREEN_MAX_ITERATIONS = 60
+TOLERANCE = 1e-10
+FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11")  # searched; a1 held, a10 projected
+_FREE_COLUMNS = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # their columns among the sensitivities (a1..a9, a11)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """A GPI fit: parameters (densities normalised to sum 1), standard errors, the fitted output and
+    its error on the identification data, the cost (SSR [output unit^2]) and how the search went."""
+
+    parameters: GPIParameters
+    operators: int
+    standard_errors: dict[str, float]
+    regressor_coefficients: np.ndarray
+    predicted: np.ndarray
+    residual: np.ndarray
+    identification: ErrorMetrics
+    iterations: int
+    seconds: float
+    cost: float
+    parameter_count: int
+    success: bool
+    message: str
+    regressor_standard_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def samples(self) -> int:
+        """Number of samples fitted."""
+        return int(self.residual.size)
+
+
+def normalized(params: GPIParameters, operators: int) -> GPIParameters:
+    """The same model (identical output) scaled so that its densities sum to 1."""
+    total = float(np.sum(params.densities(operators)))
+    if not math.isfinite(total) or total <= 0.0:
+        return params
+    return _scaled(params, total)
+
+
+def _scaled(params: GPIParameters, s: float) -> GPIParameters:
+    """The output-preserving rescaling: a1, a4, a5, a8, a9 times s; a10, a11 divided by s."""
+    return params.replace(a1=params.a1 * s, a4=params.a4 * s, a5=params.a5 * s, a8=params.a8 * s,
+                          a9=params.a9 * s, a10=params.a10 / s, a11=params.a11 / s)
+
+
+def model_jacobian(u: np.ndarray, params: GPIParameters, operators: int,
+                   initial: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(output y [output unit], dy/d(a1..a11) as an (N, 11) array) in one compiled pass."""
+    v = as_signal(u, "input")
+    s, sens = _sensitivities(v, params.as_array(), check_operators(operators),
+                             initial_states(params, operators, initial))
+    jac = np.empty((v.size, 11))
+    jac[:, :9] = params.a10 * sens[:, :9]
+    jac[:, 9] = s
+    jac[:, 10] = params.a10 * sens[:, 9]
+    return params.a10 * s, jac
+
+
+def _sensitivities(v: np.ndarray, theta: np.ndarray, operators: int,
+                   states: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    s = np.empty(v.size)
+    sens = np.empty((v.size, SENSITIVITY_COLUMNS))
+    states = np.zeros(operators) if states is None else states.copy()
+    play_sensitivities(v, np.ascontiguousarray(theta, dtype=float), operators, states, s, sens)
+    return s, sens
+
+
+def information_criterion(result: FitResult, kind: str = "bic") -> float:
+    """N log(SSR/N) + k * (2 for "aic", log N for "bic"), k = result.parameter_count."""
+    penalties = {"aic": 2.0, "bic": math.log(result.samples)}
+    if kind not in penalties:
+        raise InputError(f"information criterion must be 'aic' or 'bic', got {kind!r}")
+    n = result.samples
+    mean_square = max(result.cost / n, np.finfo(float).tiny)
+    return n * math.log(mean_square) + result.parameter_count * penalties[kind]
+
+
+def predict(result: FitResult, u: np.ndarray, regressors: np.ndarray | None = None,
+            initial: np.ndarray | None = None) -> np.ndarray:
+    """Model output [output unit] for a new input u [A] (e.g. validation data), with the fitted
+    regressor coefficients applied to the given regressor columns."""
+    output = forward(u, result.parameters, result.operators, initial)
+    coefficients = result.regressor_coefficients
+    if coefficients.size == 0:
+        if regressors is not None and np.size(regressors):
+            raise InputError("this fit has no regressors, but regressor columns were given")
+        return output
+    if regressors is None:
+        raise InputError(f"this fit has {coefficients.size} regressor columns: give them to predict")
+    return output + _check_regressors(regressors, output.size, coefficients.size) @ coefficients
+
+
+def _check_regressors(regressors: np.ndarray | None, samples: int, columns: int | None = None) -> np.ndarray:
+    if regressors is None:
+        return np.zeros((samples, 0))
+    try:
+        matrix = np.array(regressors, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("regressors must be numeric") from None
+    if matrix.ndim == 1:
+        matrix = matrix[:, None]
+    if matrix.ndim != 2 or matrix.shape[0] != samples:
+        raise InputError(f"regressors must be an (N, m) array with N = {samples}, got shape {matrix.shape}")
+    if columns is not None and matrix.shape[1] != columns:
+        raise InputError(f"regressors have {matrix.shape[1]} columns, the fit has {columns}")
+    if not np.all(np.isfinite(matrix)):
+        raise InputError("regressors contain a non-finite value")
+    return matrix
+
+
+def check_data(u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Input [A] and output as float arrays, refused (InputError) unless fit for identification."""
+    u = as_signal(u, "input")
+    y = as_signal(y, "output")
+    if u.size != y.size:
+        raise InputError(f"input and output differ in length ({u.size} and {y.size} samples)")
+    if u.size < MIN_SAMPLES:
+        raise InputError(f"too few samples to identify the model: {u.size} (at least {MIN_SAMPLES})")
+    for name, values in (("input", u), ("output", y)):
+        if np.ptp(values) <= 1e-12 * max(1.0, float(np.max(np.abs(values)))):
+            raise InputError(f"no excitation: the {name} is constant")
+    if np.cov(u, y)[0, 1] <= 0.0:
+        raise InputError("the output falls as the input rises; the GPI model is increasing (negate the output)")
+    return u, y
+
+
+class _Projected:
+    """The variable-projection problem: residual and Kaufman Jacobian over the free parameters."""
+
+    def __init__(self, v: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, a1: float):
+        self.v, self.y, self.regressors, self.operators, self.a1 = v, y, regressors, operators, a1
+        self._x: np.ndarray | None = None
+        self.evaluations = 0
+
+    def theta(self, x: np.ndarray, a10: float = 1.0) -> np.ndarray:
+        """a1..a11 from the free parameters."""
+        return np.concatenate([[self.a1], x[:8], [a10, x[8]]])
+
+    def _evaluate(self, x: np.ndarray) -> None:
+        if self._x is not None and np.array_equal(x, self._x):
+            return
+        self.evaluations += 1
+        s, sens = _sensitivities(self.v, self.theta(x), self.operators)
+        basis = np.column_stack([s, self.regressors])
+        coefficients = _linear_coefficients(basis, self.y, self.regressors)
+        q, _ = np.linalg.qr(basis)
+        self.residual = basis @ coefficients - self.y
+        direction = coefficients[0] * sens[:, _FREE_COLUMNS]
+        self.jacobian = direction - q @ (q.T @ direction)
+        self.coefficients = coefficients
+        self._x = x.copy()
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        self._evaluate(x)
+        return self.residual
+
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        self._evaluate(x)
+        return self.jacobian
+
+
+def _linear_coefficients(basis: np.ndarray, y: np.ndarray, regressors: np.ndarray) -> np.ndarray:
+    """Least squares [a10, c] with a10 >= 0 (one bound: if violated, it is active at the optimum)."""
+    coefficients = np.linalg.lstsq(basis, y, rcond=None)[0]
+    if coefficients[0] >= 0.0:
+        return coefficients
+    constrained = np.zeros_like(coefficients)
+    if regressors.shape[1]:
+        constrained[1:] = np.linalg.lstsq(regressors, y, rcond=None)[0]
+    return constrained
+
+
+def _bounds(u: np.ndarray, y: np.ndarray, a1: float, operators: int) -> tuple[np.ndarray, np.ndarray]:
+    """Box for (a2..a9, a11): increasing envelopes, positive thresholds, ranges from the data scale."""
+    half_range = 0.5 * float(np.ptp(u))
+    centre = 0.5 * float(np.max(u) + np.min(u))
+    shift = 100.0 * (abs(centre) / half_range + 10.0)
+    middle = 0.5 * float(np.max(y) + np.min(y))
+    gain = (1e-2 / half_range, 1e2 / half_range)
+    offset = (middle - 100.0 * a1, middle + 100.0 * a1)
+    a9_high = 10.0 * a1 / max(operators - 1, 1)
+    low = [gain[0], -shift, offset[0], 1e-2 * a1, gain[0], -shift, offset[0], 1e-8 * a1, -1.0 / a1]
+    high = [gain[1], shift, offset[1], 1e2 * a1, gain[1], shift, offset[1], a9_high, 1e3 / a1]
+    return np.array(low), np.array(high)
+
+
+def _free_start(params: GPIParameters) -> tuple[float, np.ndarray]:
+    """(a1 to hold, free start) with the envelope signs in the increasing convention a1, a2, a5, a6 > 0."""
+    a = params.as_array()
+    for scale, gain, shift in ((0, 1, 2), (4, 5, 6)):
+        if a[scale] < 0.0 and a[gain] < 0.0:
+            a[scale], a[gain], a[shift] = -a[scale], -a[gain], -a[shift]
+        a[scale], a[gain] = abs(a[scale]), abs(a[gain])
+    if a[0] == 0.0:
+        raise InputError("the warm start has a1 = 0 (a flat loading envelope)")
+    return float(a[0]), np.concatenate([a[1:9], a[10:11]])
+
+
+@dataclass
+class _Search:
+    x: np.ndarray
+    a1: float
+    cost: float
+    iterations: int
+    status: int
+    message: str
+
+
+def _search(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
+            max_iterations: int) -> _Search:
+    a1, x0 = _free_start(start)
+    low, high = _bounds(u, y, a1, operators)
+    span = high - low
+    x0 = np.clip(x0, low + 1e-9 * span, high - 1e-9 * span)
+    problem = _Projected(u, y, regressors, operators, a1)
+    solution = least_squares(problem.fun, x0, jac=problem.jac, bounds=(low, high), method="trf",
+                             x_scale="jac", ftol=TOLERANCE, xtol=TOLERANCE, gtol=TOLERANCE,
+                             max_nfev=max_iterations)
+    return _Search(solution.x, a1, 2.0 * float(solution.cost), int(solution.njev or solution.nfev),
+                   int(solution.status), str(solution.message))
+
+
+def _parameters(problem_a1: float, x: np.ndarray, a10: float, operators: int, unit: str) -> GPIParameters:
+    theta = np.concatenate([[problem_a1], x[:8], [a10, x[8]]])
+    return normalized(GPIParameters.from_array(theta, output_unit=unit), operators)
+
+
+def _thinned(count: int) -> np.ndarray:
+    """Indices of an evenly thinned copy with at most SCREEN_SAMPLES samples (rate independence keeps
+    the loops; only turning points between kept samples are shaved)."""
+    stride = max(1, math.ceil(count / SCREEN_SAMPLES))
+    return np.arange(0, count, stride)
+
+
+def _best_start(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
+                starts: Sequence[GPIParameters], progress: Callable[[str], None] | None) -> tuple[_Search, int]:
+    """The best of several searches on the thinned data; returns it and the iterations spent."""
+    keep = _thinned(u.size)
+    best, spent = None, 0
+    for number, start in enumerate(starts, 1):
+        found = _search(u[keep], y[keep], regressors[keep], operators, start, SCREEN_MAX_ITERATIONS)
+        spent += found.iterations
+        _report(progress, f"{operators} operators, start {number}/{len(starts)} on {keep.size} samples: "
+                f"cost {found.cost:.6g}")
+        if best is None or found.cost < best.cost:
+            best = found
+    return best, spent
+
+
+def _report(progress: Callable[[str], None] | None, text: str) -> None:
+    if progress is not None:
+        progress(text)
+
+
+def _starts(u: np.ndarray, y: np.ndarray, operators: int, starts: int | Sequence[GPIParameters] | None,
+            unit: str) -> list[GPIParameters]:
+    if starts is None:
+        return start_points(u, y, operators, DEFAULT_STARTS, output_unit=unit)
+    if isinstance(starts, (int, np.integer)) and not isinstance(starts, bool):
+        if starts < 1:
+            raise InputError(f"starts must be at least 1, got {starts}")
+        return start_points(u, y, operators, int(starts), output_unit=unit)
+    chosen = list(starts)
+    if not chosen or not all(isinstance(s, GPIParameters) for s in chosen):
+        raise InputError("starts must be a count or a non-empty sequence of GPIParameters")
+    return chosen
+
+
+def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
+               initial: GPIParameters | None, starts: int | Sequence[GPIParameters] | None,
+               max_iterations: int, unit: str, progress: Callable[[str], None] | None) -> tuple[_Search, int]:
+    """The full-data search for one operator count (after multi-start screening unless warm-started)."""
+    spent = 0
+    if initial is None:
+        screened, spent = _best_start(u, y, regressors, operators, _starts(u, y, operators, starts, unit),
+                                      progress)
+        initial = GPIParameters.from_array(_raw_theta(screened), output_unit=unit)
+        if u.size <= SCREEN_SAMPLES:
+            return screened, spent
+    found = _search(u, y, regressors, operators, initial, max_iterations)
+    _report(progress, f"{operators} operators on {u.size} samples: cost {found.cost:.6g}, "
+            f"{found.iterations} iterations")
+    return found, spent + found.iterations
+
+
+def _raw_theta(found: _Search) -> np.ndarray:
+    return np.concatenate([[found.a1], found.x[:8], [1.0, found.x[8]]])
+
+
+def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial: GPIParameters | None = None,
+            output_unit: str = "m", regressors: np.ndarray | None = None,
+            starts: int | Sequence[GPIParameters] | None = None, max_iterations: int = DEFAULT_MAX_ITERATIONS,
+            progress: Callable[[str], None] | None = None) -> FitResult:
+    """Fit a1..a11 to input u [A] and output y [output_unit] (y ~ GPI(u) + regressors @ c).
+
+    operators None: each of OPERATOR_CANDIDATES is fitted and the smallest count whose RMS error is
+    within OPERATOR_MARGIN of the best is kept (every count has the same parameter count, so an
+    information criterion would just take the best). initial: a warm start (no multi-start).
+    starts: how many data-derived starts to screen (default 4), or the start points themselves.
+    """
+    clock = time.perf_counter()
+    u, y = check_data(u, y)
+    matrix = _check_regressors(regressors, u.size)
+    if initial is not None and not isinstance(initial, GPIParameters):
+        raise InputError(f"initial must be GPIParameters, got {type(initial).__name__}")
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
+        raise InputError(f"max_iterations must be a positive integer, got {max_iterations!r}")
+    counts = OPERATOR_CANDIDATES if operators is None else (check_operators(operators),)
+    fits = {}
+    for count in counts:
+        fits[count] = _fit_count(u, y, matrix, count, initial, starts, int(max_iterations), output_unit, progress)
+    chosen = _choose_count({count: found.cost for count, (found, _) in fits.items()})
+    found = fits[chosen][0]
+    iterations = sum(spent for _, spent in fits.values())
+    return _result(u, y, matrix, chosen, found, iterations, time.perf_counter() - clock, output_unit)
+
+
+def _choose_count(costs: dict[int, float]) -> int:
+    best = min(costs.values())
+    return min(count for count, cost in costs.items() if math.sqrt(cost) <= (1 + OPERATOR_MARGIN) * math.sqrt(best))
+
+
+def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, found: _Search,
+            iterations: int, seconds: float, unit: str) -> FitResult:
+    problem = _Projected(u, y, regressors, operators, found.a1)
+    problem.fun(found.x)
+    a10, coefficients = float(problem.coefficients[0]), problem.coefficients[1:].copy()
+    params = _parameters(found.a1, found.x, a10, operators, unit)
+    predicted = forward(u, params, operators) + regressors @ coefficients
+    residual = y - predicted
+    cost = float(residual @ residual)
+    errors, regressor_errors = _standard_errors(u, params, operators, regressors, cost)
+    return FitResult(
+        parameters=params, operators=operators, standard_errors=errors,
+        regressor_coefficients=coefficients, predicted=predicted, residual=residual,
+        identification=error_metrics(y, predicted), iterations=iterations, seconds=seconds, cost=cost,
+        parameter_count=len(FREE_NAMES) + 1 + regressors.shape[1], success=found.status > 0,
+        message=found.message, regressor_standard_errors=regressor_errors,
+    )
+
+
+def _standard_errors(u: np.ndarray, params: GPIParameters, operators: int, regressors: np.ndarray,
+                     cost: float) -> tuple[dict[str, float], np.ndarray]:
+    """sigma^2 (J^T J)^-1 in the normalised form: free a1..a9, a11 and c; a10 = 1 / sum exp(-a11 r_i)
+    follows from them (delta method)."""
+    _, jac = model_jacobian(u, params, operators)
+    indices = np.arange(operators)
+    weights = np.exp(-params.a11 * params.a9 * indices)
+    total = weights.sum()
+    a10_gradient = np.zeros(10)  # d a10 / d(a1..a9, a11)
+    a10_gradient[8] = params.a11 * (indices @ weights) / total**2
+    a10_gradient[9] = params.a9 * (indices @ weights) / total**2
+    free_jac = np.delete(jac, 9, axis=1) + np.outer(jac[:, 9], a10_gradient)
+    design = np.column_stack([free_jac, regressors])
+    dof = u.size - design.shape[1]
+    covariance = _covariance(design, cost / max(dof, 1))
+    variances = np.diag(covariance)
+    free_names = [name for name in PARAMETER_NAMES if name != "a10"]
+    errors = {name: float(np.sqrt(variances[k])) for k, name in enumerate(free_names)}
+    with np.errstate(invalid="ignore"):
+        a10_variance = a10_gradient @ covariance[:10, :10] @ a10_gradient
+    errors["a10"] = float(np.sqrt(a10_variance)) if np.isfinite(a10_variance) else math.inf
+    errors = {name: errors[name] for name in PARAMETER_NAMES}
+    return errors, np.sqrt(variances[10:])
+
+
+def _covariance(design: np.ndarray, sigma2: float) -> np.ndarray:
+    """sigma^2 (J^T J)^-1, column-scaled for conditioning; infinite where J is rank deficient."""
+    norms = np.linalg.norm(design, axis=0)
+    norms[norms == 0.0] = 1.0
+    scaled = design / norms
+    _, singular, vt = np.linalg.svd(scaled, full_matrices=False)
+    if singular[-1] <= 1e-13 * singular[0]:
+        return np.full((design.shape[1], design.shape[1]), np.inf)
+    inverse = (vt.T / singular**2) @ vt
+    return sigma2 * inverse / np.outer(norms, norms)

@@ -1,0 +1,168 @@
+"""GPI fit: parameter recovery, standard errors, the paper's procedure, the analytic Jacobian,
+regressors (offset, drift) and refused input."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sma_stage.errors import InputError
+from sma_stage.identify.fit import (
+    FitResult,
+    fit_gpi,
+    information_criterion,
+    model_jacobian,
+    normalized,
+    predict,
+)
+from sma_stage.model import GPIParameters, forward
+from sma_stage.signals import paper_identification_signal, paper_validation_signal
+
+OPERATORS = 10
+# A stage with a ~1 mm stroke [m], a loop of visible width, gl <= gr (checked below).
+RAW_TRUTH = GPIParameters(a1=0.55e-3, a2=0.55, a3=0.1, a4=0.45e-3, a5=0.5e-3, a6=0.5, a7=-0.05,
+                          a8=0.56e-3, a9=0.012e-3, a10=0.25, a11=1.0 / 0.06e-3)
+TRUTH = normalized(RAW_TRUTH, OPERATORS)
+
+
+def identification_data(samples=2001, noise=0.0, seed=0):
+    t = np.linspace(0.0, 1000.0, samples)
+    u = paper_identification_signal(t)
+    y = forward(u, RAW_TRUTH, OPERATORS)
+    rng = np.random.default_rng(seed)
+    return t, u, y + rng.normal(0.0, noise, samples)
+
+
+def relative_errors(found: GPIParameters, expected: GPIParameters) -> np.ndarray:
+    return np.abs(found.as_array() / expected.as_array() - 1.0)
+
+
+def test_truth_is_a_realistic_stage():
+    v = np.linspace(-6, 6, 1001)
+    assert np.all(TRUTH.envelope_left(v) <= TRUTH.envelope_right(v))
+    _, u, y = identification_data()
+    assert 0.7e-3 < np.ptp(y) < 1.3e-3
+    assert math.isclose(TRUTH.densities(OPERATORS).sum(), 1.0)
+    assert np.allclose(forward(u, TRUTH, OPERATORS), y, rtol=0, atol=1e-15)
+
+
+def test_recovers_known_parameters_from_the_data_derived_guess():
+    _, u, y = identification_data()
+    result = fit_gpi(u, y, operators=OPERATORS)
+    assert isinstance(result, FitResult) and result.success
+    assert np.max(relative_errors(result.parameters, TRUTH)) < 1e-6
+    assert result.identification.max_pct < 1e-5
+
+
+def test_recovers_known_parameters_from_a_perturbed_start():
+    _, u, y = identification_data()
+    factors = 1.0 + 0.15 * np.where(np.arange(11) % 2 == 0, 1.0, -1.0)
+    start = GPIParameters.from_array(RAW_TRUTH.as_array() * factors)
+    result = fit_gpi(u, y, operators=OPERATORS, initial=start)
+    assert np.max(relative_errors(result.parameters, TRUTH)) < 1e-6
+
+
+def test_noisy_fit_lies_within_a_few_standard_errors():
+    _, u, y = identification_data(noise=5e-6, seed=1)
+    result = fit_gpi(u, y, operators=OPERATORS)
+    errors = np.array([result.standard_errors[name] for name in TRUTH.to_dict()])
+    assert np.all(np.isfinite(errors)) and np.all(errors > 0)
+    deviation = np.abs(result.parameters.as_array() - TRUTH.as_array()) / errors
+    assert np.max(deviation) < 4.0
+    assert result.parameter_count == 10
+    assert math.isclose(np.std(result.residual), 5e-6, rel_tol=0.1)
+
+
+def test_paper_procedure_identify_on_decaying_sine_validate_on_two_cosines():
+    _, u, y = identification_data(noise=2e-6, seed=2)
+    result = fit_gpi(u, y)
+    t = np.linspace(0.0, 1000.0, 2001)
+    u_validation = paper_validation_signal(t)
+    y_validation = forward(u_validation, RAW_TRUTH, OPERATORS) + np.random.default_rng(3).normal(0, 2e-6, t.size)
+    from sma_stage.identify.metrics import error_metrics
+
+    validation = error_metrics(y_validation, predict(result, u_validation))
+    assert result.operators in (5, 10, 15, 20)
+    assert validation.max_pct < 4.0
+    assert validation.rms_pct < 1.0
+
+
+def test_operator_count_is_chosen_from_the_data():
+    _, u, y = identification_data(samples=1201)
+    assert fit_gpi(u, y).operators == OPERATORS
+
+
+def test_jacobian_matches_central_differences():
+    _, u, _ = identification_data(samples=801)
+    y, jac = model_jacobian(u, TRUTH, OPERATORS)
+    assert np.allclose(y, forward(u, TRUTH, OPERATORS), rtol=0, atol=1e-15)
+    theta = TRUTH.as_array()
+    for j in range(11):
+        step = 1e-6 * abs(theta[j])
+        up, down = theta.copy(), theta.copy()
+        up[j] += step
+        down[j] -= step
+        difference = (forward(u, GPIParameters.from_array(up), OPERATORS)
+                      - forward(u, GPIParameters.from_array(down), OPERATORS)) / (2 * step)
+        assert np.linalg.norm(jac[:, j] - difference) <= 1e-6 * np.linalg.norm(difference), TRUTH.to_dict()
+
+
+def test_regressors_recover_a_linear_drift_and_predict_applies_them():
+    t, u, y = identification_data()
+    drift = np.column_stack([t / 1000.0])
+    result = fit_gpi(u, y + 0.2e-3 * drift[:, 0], operators=OPERATORS, regressors=drift)
+    assert result.regressor_coefficients == pytest.approx([0.2e-3], rel=1e-6)
+    assert np.max(relative_errors(result.parameters, TRUTH)) < 1e-6
+    assert result.parameter_count == 11
+    assert np.allclose(predict(result, u, drift), result.predicted, rtol=0, atol=1e-15)
+    with pytest.raises(InputError):
+        predict(result, u)
+
+
+def test_regressors_recover_an_offset_and_drift():
+    t, u, y = identification_data()
+    columns = np.column_stack([np.ones_like(t), t / 1000.0])
+    result = fit_gpi(u, y + 0.1e-3 - 0.05e-3 * columns[:, 1], operators=OPERATORS, regressors=columns)
+    assert result.identification.rms_pct < 1e-4
+    assert result.regressor_coefficients[1] == pytest.approx(-0.05e-3, rel=1e-4)
+
+
+def test_information_criterion_follows_its_formula():
+    _, u, y = identification_data(noise=5e-6, seed=4)
+    result = fit_gpi(u, y, operators=OPERATORS, initial=RAW_TRUTH)
+    n = result.samples
+    assert information_criterion(result, "aic") == pytest.approx(n * math.log(result.cost / n) + 2 * 10)
+    assert information_criterion(result) == pytest.approx(n * math.log(result.cost / n) + math.log(n) * 10)
+    with pytest.raises(InputError):
+        information_criterion(result, "hqc")
+
+
+def test_quasi_static_data_fit_without_time():
+    u = paper_identification_signal(np.linspace(0.0, 1000.0, 161))  # 40 points a cycle, index as time
+    y = forward(u, RAW_TRUTH, OPERATORS)
+    result = fit_gpi(u, y, operators=OPERATORS)
+    assert np.max(relative_errors(result.parameters, TRUTH)) < 1e-6
+
+
+@pytest.mark.parametrize(
+    "u, y, words",
+    [
+        (np.r_[np.nan, np.ones(49)], np.arange(50.0), "non-finite"),
+        (np.arange(50.0), np.arange(49.0), "length"),
+        (np.arange(10.0), np.arange(10.0), "too few"),
+        (np.ones(50), np.arange(50.0), "no excitation"),
+        (np.sin(np.arange(50.0)), np.zeros(50), "no excitation"),
+        (np.sin(np.arange(50.0)), -np.sin(np.arange(50.0)), "falls"),
+    ],
+)
+def test_bad_data_is_refused(u, y, words):
+    with pytest.raises(InputError, match=words):
+        fit_gpi(u, y, operators=5)
+
+
+def test_bad_options_are_refused():
+    _, u, y = identification_data(samples=101)
+    for options in ({"operators": 0}, {"regressors": np.ones((5, 1))}, {"starts": 0}, {"max_iterations": 0},
+                    {"initial": {"a1": 1.0}}):
+        with pytest.raises(InputError):
+            fit_gpi(u, y, **options)
