@@ -50,6 +50,16 @@ def _check_dt(dt_s: float) -> float:
     return dt
 
 
+def _check_current(current_a) -> float:
+    try:
+        current = float(current_a)
+    except (TypeError, ValueError):
+        raise InputError(f"current_a must be a number, got {current_a!r}") from None
+    if not math.isfinite(current):
+        raise InputError(f"current_a must be finite, got {current_a!r}")
+    return current
+
+
 def _check_currents(current_a) -> np.ndarray:
     try:
         currents = np.asarray(current_a, dtype=float)
@@ -80,6 +90,8 @@ class StageSimulator:
             raise InputError("config must be a StageConfig and effects an Effects")
         self.seed = seed
         self._parameters = pack_parameters(self.config, self.effects)
+        self._current, self._reading, self._noise = np.zeros(1), np.zeros(1), np.zeros(1)
+        self._outputs = _allocate(1)
         self.reset()
 
     def reset(self) -> StageState:
@@ -101,17 +113,17 @@ class StageSimulator:
     def step(self, current_a: float, dt_s: float) -> StageState:
         """Apply current_a [A] (clamped to max_current_a) for dt_s [s]; return the state at the end."""
         dt = _check_dt(dt_s)
-        currents = _check_currents([current_a])
-        outputs = _allocate(1)
-        ph.run(self._parameters, self._state, currents, dt, *outputs)
-        position, temperatures, fractions, times = outputs
+        self._current[0] = _check_current(current_a)
+        position, _, _, times = self._outputs
+        ph.run(self._parameters, self._state, self._current, dt, *self._outputs)
         velocity = (position[0] - self._position) / dt
         self._position = position[0]
         self._history.append((times[0], position[0]))
-        delayed = self._delayed_position(times[0])
-        measured = _sense(np.array([delayed]), np.array([self._rng.standard_normal()]), self.config)[0]
-        applied = float(np.clip(currents[0], -self.config.max_current_a, self.config.max_current_a))
-        self._last = self._snapshot(applied, measured, velocity)
+        self._reading[0] = self._delayed_position(times[0])
+        self._noise[0] = self._rng.standard_normal()
+        measured = _sense(self._reading, self._noise, self.config)[0]
+        limit = self.config.max_current_a
+        self._last = self._snapshot(min(limit, max(-limit, self._current[0])), measured, velocity)
         return self._last
 
     def _delayed_position(self, now_s: float) -> float:
