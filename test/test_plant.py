@@ -303,3 +303,13 @@ def test_out_of_range_config_is_refused(kwargs):
 def test_out_of_range_effects_are_refused(kwargs):
     with pytest.raises(InputError):
         Effects(**kwargs)
+
+
+def test_config_and_effects_from_mappings():
+    config = StageConfig.from_mapping({"max_current_a": 3.0, "sensor_noise_m": 0.0})
+    assert config.max_current_a == 3.0 and config.as_dict()["sensor_noise_m"] == 0.0
+    assert Effects.from_mapping(Effects(sensor_delay_s=0.5).as_dict()).sensor_delay_s == 0.5
+    with pytest.raises(InputError, match="max_curent_a"):
+        StageConfig.from_mapping({"max_curent_a": 3.0})
+    with pytest.raises(InputError):
+        Effects.from_mapping({"sensor_delay_s": "soon"})

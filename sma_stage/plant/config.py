@@ -4,7 +4,9 @@ SI units throughout: m, s, A, K, Pa, N. Sources of the defaults are in docs/simu
 """
 
 import math
-from dataclasses import dataclass, fields
+import numbers
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
@@ -14,10 +16,18 @@ from sma_stage.plant import physics as ph
 
 def _check_range(owner: object, name: str, low: float, high: float) -> None:
     value = getattr(owner, name)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise InputError(f"{type(owner).__name__}.{name} must be a number, got {value!r}")
     if not (math.isfinite(value) and low <= value <= high):
         raise InputError(f"{type(owner).__name__}.{name}={value!r} is outside [{low:g}, {high:g}]")
+
+
+def _from_mapping(cls, values: Mapping[str, object]):
+    known = {item.name for item in fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise InputError(f"unknown {cls.__name__} parameter(s): {', '.join(unknown)}")
+    return cls(**values)
 
 
 @dataclass(frozen=True)
@@ -89,6 +99,15 @@ class StageConfig:
             _check_range(self, item.name, *self._RANGES[item.name])
         self._check_orderings()
 
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, object]) -> "StageConfig":
+        """Build from a dict (e.g. parsed YAML); unknown names or bad values raise InputError."""
+        return _from_mapping(cls, values)
+
+    def as_dict(self) -> dict[str, float]:
+        """All fields by name (SI units)."""
+        return asdict(self)
+
     def _check_orderings(self) -> None:
         pairs = [
             ("martensite_finish_k", "martensite_start_k"),
@@ -142,6 +161,15 @@ class Effects:
     def __post_init__(self) -> None:
         for item in fields(self):
             _check_range(self, item.name, *self._RANGES[item.name])
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, object]) -> "Effects":
+        """Build from a dict (e.g. parsed YAML); unknown names or bad values raise InputError."""
+        return _from_mapping(cls, values)
+
+    def as_dict(self) -> dict[str, float]:
+        """All fields by name (SI units)."""
+        return asdict(self)
 
 
 def pack_parameters(config: StageConfig, effects: Effects) -> np.ndarray:
