@@ -27,8 +27,8 @@ def _envelope_derivatives(v: float, scale: float, gain: float, shift: float, out
 
 @numba.njit(cache=True, nogil=True)
 def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states: np.ndarray,
-                       s_out: np.ndarray, jac_out: np.ndarray) -> None:
-    """s_k = sum_i exp(-a11 r_i) z_{i,k} into s_out and ds_k/d(a1..a9, a11) into jac_out (N, 10).
+                       out: np.ndarray) -> None:
+    """s_k = sum_i exp(-a11 r_i) z_{i,k} into out[0, k] and ds_k/d(a1..a9, a11) into out[1:11, k].
 
     theta holds a1..a11; states are the operator states before the first sample, updated in place.
     """
@@ -73,5 +73,40 @@ def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states:
                 row[8] += w[i] * i
             row[8] -= a11 * i * wz
             row[9] -= r[i] * wz
-        s_out[k] = total
-        jac_out[k, :] = row
+        out[0, k] = total
+        for j in range(SENSITIVITY_COLUMNS):
+            out[1 + j, k] = row[j]
+
+
+@numba.njit(cache=True, nogil=True)
+def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Upper-triangular R of the QR factorisation of the matrix whose columns are rows[order] (each row
+    of `rows` one column of length N); `rows` is overwritten. Single-threaded, so a tall-skinny QR costs
+    about 2 N k^2 flops whatever the BLAS threading does."""
+    k = order.size
+    n = rows.shape[1]
+    r = np.zeros((k, k))
+    for j in range(k):
+        x = rows[order[j]]
+        norm = 0.0
+        for t in range(j, n):
+            norm += x[t] * x[t]
+        norm = np.sqrt(norm)
+        alpha = -norm if x[j] >= 0.0 else norm
+        r[j, j] = alpha
+        if norm == 0.0:
+            continue
+        x[j] -= alpha
+        vv = 0.0
+        for t in range(j, n):
+            vv += x[t] * x[t]
+        for c in range(j + 1, k):
+            col = rows[order[c]]
+            dot = 0.0
+            for t in range(j, n):
+                dot += x[t] * col[t]
+            factor = 2.0 * dot / vv
+            for t in range(j, n):
+                col[t] -= factor * x[t]
+            r[j, c] = col[j]
+    return r

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from sma_stage.errors import InputError
-from sma_stage.identify._sensitivity import SENSITIVITY_COLUMNS, play_sensitivities
+from sma_stage.identify._sensitivity import SENSITIVITY_COLUMNS, householder_r, play_sensitivities
 from sma_stage.identify.initial_guess import start_points
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.forward import as_signal, forward, initial_states
@@ -82,22 +82,23 @@ def model_jacobian(u: np.ndarray, params: GPIParameters, operators: int,
                    initial: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(output y [output unit], dy/d(a1..a11) as an (N, 11) array) in one compiled pass."""
     v = as_signal(u, "input")
-    s, sens = _sensitivities(v, params.as_array(), check_operators(operators),
-                             initial_states(params, operators, initial))
+    rows = _sensitivities(v, params.as_array(), check_operators(operators),
+                          initial_states(params, operators, initial))
+    s, sens = rows[0], rows[1:]
     jac = np.empty((v.size, 11))
-    jac[:, :9] = params.a10 * sens[:, :9]
+    jac[:, :9] = params.a10 * sens[:9].T
     jac[:, 9] = s
-    jac[:, 10] = params.a10 * sens[:, 9]
+    jac[:, 10] = params.a10 * sens[9]
     return params.a10 * s, jac
 
 
-def _sensitivities(v: np.ndarray, theta: np.ndarray, operators: int,
-                   states: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    s = np.empty(v.size)
-    sens = np.empty((v.size, SENSITIVITY_COLUMNS))
+def _sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states: np.ndarray | None = None,
+                   out: np.ndarray | None = None) -> np.ndarray:
+    """Rows s (y = a10 s) and ds/d(a1..a9, a11), shape (11, N)."""
+    out = np.empty((1 + SENSITIVITY_COLUMNS, v.size)) if out is None else out
     states = np.zeros(operators) if states is None else states.copy()
-    play_sensitivities(v, np.ascontiguousarray(theta, dtype=float), operators, states, s, sens)
-    return s, sens
+    play_sensitivities(v, np.ascontiguousarray(theta, dtype=float), operators, states, out)
+    return out
 
 
 def information_criterion(result: FitResult, kind: str = "bic") -> float:
@@ -160,10 +161,19 @@ def check_data(u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Projected:
-    """The variable-projection problem: residual and Kaufman Jacobian over the free parameters."""
+    """The variable-projection problem over the free parameters, QR-compressed.
+
+    One Householder QR of [regressors, s, ds/d(free), y] gives the linear coefficients (a10 >= 0, c),
+    the projected residual and Kaufman's Jacobian P_perp a10 ds/dθ in the same orthonormal basis, so
+    TRF works on an 10-row problem with the same cost, gradient and Gauss-Newton model as the N-row one.
+    """
 
     def __init__(self, v: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, a1: float):
         self.v, self.y, self.regressors, self.operators, self.a1 = v, y, regressors, operators, a1
+        m = regressors.shape[1]
+        self._rows = np.empty((m + 2 + SENSITIVITY_COLUMNS, v.size))
+        skip_a1 = [m + 1 + c for c in _FREE_COLUMNS]
+        self._order = np.array([*range(m), m, *skip_a1, m + 1 + SENSITIVITY_COLUMNS], dtype=np.int64)
         self._x: np.ndarray | None = None
         self.evaluations = 0
 
@@ -175,14 +185,17 @@ class _Projected:
         if self._x is not None and np.array_equal(x, self._x):
             return
         self.evaluations += 1
-        s, sens = _sensitivities(self.v, self.theta(x), self.operators)
-        basis = np.column_stack([s, self.regressors])
-        coefficients = _linear_coefficients(basis, self.y, self.regressors)
-        q, _ = np.linalg.qr(basis)
-        self.residual = basis @ coefficients - self.y
-        direction = coefficients[0] * sens[:, _FREE_COLUMNS]
-        self.jacobian = direction - q @ (q.T @ direction)
+        m = self.regressors.shape[1]
+        rows = self._rows
+        rows[:m] = self.regressors.T
+        _sensitivities(self.v, self.theta(x), self.operators, out=rows[m:m + 1 + SENSITIVITY_COLUMNS])
+        rows[-1] = self.y
+        r = householder_r(rows, self._order)
+        linear = m + 1
+        coefficients, first = _linear_coefficients(r[:linear, :linear], r[:linear, -1])
         self.coefficients = coefficients
+        self.residual = -r[first:, -1]
+        self.jacobian = coefficients[-1] * r[first:, linear:-1]
         self._x = x.copy()
 
     def fun(self, x: np.ndarray) -> np.ndarray:
@@ -194,15 +207,17 @@ class _Projected:
         return self.jacobian
 
 
-def _linear_coefficients(basis: np.ndarray, y: np.ndarray, regressors: np.ndarray) -> np.ndarray:
-    """Least squares [a10, c] with a10 >= 0 (one bound: if violated, it is active at the optimum)."""
-    coefficients = np.linalg.lstsq(basis, y, rcond=None)[0]
-    if coefficients[0] >= 0.0:
-        return coefficients
+def _linear_coefficients(triangle: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
+    """Least squares [c, a10] from the R factor with a10 >= 0 (one bound: if the unconstrained a10 is
+    negative the bound is active at the optimum); also the first row of the residual's subspace."""
+    coefficients = np.linalg.lstsq(triangle, rhs, rcond=None)[0]
+    if coefficients[-1] >= 0.0:
+        return coefficients, triangle.shape[0]
+    m = triangle.shape[0] - 1
     constrained = np.zeros_like(coefficients)
-    if regressors.shape[1]:
-        constrained[1:] = np.linalg.lstsq(regressors, y, rcond=None)[0]
-    return constrained
+    if m:
+        constrained[:m] = np.linalg.lstsq(triangle[:m, :m], rhs[:m], rcond=None)[0]
+    return constrained, m
 
 
 def _bounds(u: np.ndarray, y: np.ndarray, a1: float, operators: int) -> tuple[np.ndarray, np.ndarray]:
@@ -359,7 +374,7 @@ def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
             iterations: int, seconds: float, unit: str) -> FitResult:
     problem = _Projected(u, y, regressors, operators, found.a1)
     problem.fun(found.x)
-    a10, coefficients = float(problem.coefficients[0]), problem.coefficients[1:].copy()
+    a10, coefficients = float(problem.coefficients[-1]), problem.coefficients[:-1].copy()
     params = _parameters(found.a1, found.x, a10, operators, unit)
     predicted = forward(u, params, operators) + regressors @ coefficients
     residual = y - predicted
@@ -400,11 +415,12 @@ def _standard_errors(u: np.ndarray, params: GPIParameters, operators: int, regre
 
 
 def _covariance(design: np.ndarray, sigma2: float) -> np.ndarray:
-    """sigma^2 (J^T J)^-1, column-scaled for conditioning; infinite where J is rank deficient."""
+    """sigma^2 (J^T J)^-1 from J's R factor, column-scaled; infinite where J is rank deficient."""
     norms = np.linalg.norm(design, axis=0)
     norms[norms == 0.0] = 1.0
-    scaled = design / norms
-    _, singular, vt = np.linalg.svd(scaled, full_matrices=False)
+    rows = np.ascontiguousarray((design / norms).T)
+    r = householder_r(rows, np.arange(rows.shape[0], dtype=np.int64))
+    _, singular, vt = np.linalg.svd(r)
     if singular[-1] <= 1e-13 * singular[0]:
         return np.full((design.shape[1], design.shape[1]), np.inf)
     inverse = (vt.T / singular**2) @ vt
