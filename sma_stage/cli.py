@@ -41,6 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
     diagnose = commands.add_parser("diagnose", help="fit, find what the model lacks, add it, report before/after")
     add_data_arguments(diagnose, validate_required=True)
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))
+    simulate = commands.add_parser("simulate", help="run the stage simulator offline and write a CSV")
+    from sma_stage.commands.simulate import add_arguments
+
+    add_arguments(simulate)
+    simulate.set_defaults(handler=run_simulate)
     return parser
 
 
@@ -76,6 +81,16 @@ def run_paper(args: argparse.Namespace) -> dict:
     report = evaluate_paper(args.out, args.operators)
     if not args.json:
         print((args.out / "paper_summary.md").read_text(encoding="utf-8"))
+    return report
+
+
+def run_simulate(args: argparse.Namespace) -> dict:
+    """gpi_tool simulate."""
+    from sma_stage.commands.simulate import run_simulate as simulate_command
+
+    report = simulate_command(args)
+    if not args.json:
+        print(f"wrote {report['samples']} samples to {report['file']}", file=sys.stderr)
     return report
 
 

@@ -1,0 +1,82 @@
+"""gpi_tool from the outside: exit status, JSON on stdout only, one-line errors, files written."""
+
+import json
+
+import numpy as np
+import pytest
+
+from sma_stage.cli import main
+from sma_stage.model import forward, load_model_file
+from sma_stage.signals import paper_identification_signal, paper_validation_signal
+
+STAGE = load_model_file("config/model_default.yaml")
+
+
+def write_gpi_csv(path, signal, noise=1e-6, samples=600, seed=0):
+    t = np.linspace(0.0, 1000.0, samples)
+    u = signal(t)
+    y = forward(u, STAGE.parameters, STAGE.operators) + np.random.default_rng(seed).normal(0.0, noise, samples)
+    np.savetxt(path, np.c_[t, u, y], delimiter=",", header="t,input,output", comments="")
+    return path
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("data")
+    return (write_gpi_csv(folder / "ident.csv", paper_identification_signal),
+            write_gpi_csv(folder / "valid.csv", paper_validation_signal, seed=1))
+
+
+def test_fit_prints_only_the_json_report_and_writes_the_model(data, tmp_path, capsys):
+    ident, valid = data
+    assert main(["fit", str(ident), "--validate", str(valid), "--operators", "10", "--out", str(tmp_path),
+                 "--json"]) == 0
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
+    assert set(report) >= {"model", "identification", "validation", "fit_seconds"}
+    assert report["model"]["operators"] == 10 and len(report["model"]["parameters"]) == 11
+    assert report["validation"]["samples"] == 600
+    assert report["validation"]["max_pct"] < 4.0
+    assert "gpi_tool:" in captured.err
+    assert load_model_file(tmp_path / "model.yaml").operators == 10
+    assert (tmp_path / "fit.png").exists() and (tmp_path / "report.md").exists()
+
+
+def bad_csv(tmp_path, text):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    return str(path)
+
+
+@pytest.mark.parametrize("case", ["missing file", "missing column", "nan", "no excitation", "few samples"])
+def test_bad_data_ends_with_status_2_and_one_line(case, tmp_path, capsys):
+    rows = "\n".join(f"{k},{np.sin(k / 5)},{np.cos(k / 5)}" for k in range(60))
+    path = {
+        "missing file": str(tmp_path / "absent.csv"),
+        "missing column": bad_csv(tmp_path, "t,current,output\n" + rows),
+        "nan": bad_csv(tmp_path, "t,input,output\n" + rows + "\n60,nan,0.1"),
+        "no excitation": bad_csv(tmp_path, "t,input,output\n" + "\n".join(f"{k},1.0,{k}" for k in range(60))),
+        "few samples": bad_csv(tmp_path, "t,input,output\n0,1,2\n1,2,3"),
+    }[case]
+    assert main(["fit", path, "--out", str(tmp_path / "out"), "--json"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert len(captured.err.strip().splitlines()) == 1 and captured.err.startswith("gpi_tool: error:")
+    assert not (tmp_path / "out").exists()
+
+
+def test_simulate_writes_a_csv_that_fit_can_read(tmp_path, capsys):
+    out = tmp_path / "sim.csv"
+    assert main(["simulate", "--input", "validation", "--rate-hz", "1", "--duration", "300", "--out", str(out),
+                 "--effect", "sensor_delay_s=2", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["samples"] == 300 and summary["effects"]["sensor_delay_s"] == 2.0
+    assert out.read_text().startswith("t,input,output")
+
+
+@pytest.mark.parametrize("arguments", [["--effect", "bogus=1"], ["--effect", "sensor_delay_s"],
+                                       ["--set", "flexure_stiffness_n_m=-1"]])
+def test_simulate_refuses_bad_settings(arguments, tmp_path, capsys):
+    assert main(["simulate", "--input", "validation", "--out", str(tmp_path / "s.csv"), *arguments]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert not (tmp_path / "s.csv").exists()
