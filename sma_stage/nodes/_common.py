@@ -1,0 +1,125 @@
+"""What the three nodes share: parameter declaration with descriptors, QoS profiles, and a main()
+that turns a bad start-up parameter into a one-line error and shuts down quietly on Ctrl-C/SIGTERM."""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+from sma_stage.errors import InputError
+
+# Commands: reliable, depth 10. Stage state: published reliable (a best-effort subscriber is compatible
+# with it), subscribed best effort (compatible with any publisher: the simulator, a hardware bridge, a
+# bag replay). Reports: transient local so a late subscriber still gets the last one.
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+STATE_PUBLISH_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+STATE_SUBSCRIBE_QOS = qos_profile_sensor_data
+REPORT_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+
+JOINT_NAME = "stage_x"
+
+
+@dataclass(frozen=True)
+class Param:
+    """One node parameter: default value, description, range (numbers) and whether it is read-only."""
+
+    name: str
+    default: float | int | bool | str
+    description: str
+    low: float | None = None
+    high: float | None = None
+    read_only: bool = False
+
+    def descriptor(self) -> ParameterDescriptor:
+        """The ParameterDescriptor rclpy enforces on every set."""
+        descriptor = ParameterDescriptor(name=self.name, description=self.description, read_only=self.read_only)
+        descriptor.type = _parameter_type(self.default)
+        if self.low is not None and isinstance(self.default, float):
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(self.low),
+                                                                  to_value=float(self.high), step=0.0)]
+        elif self.low is not None and isinstance(self.default, int) and not isinstance(self.default, bool):
+            descriptor.integer_range = [IntegerRange(from_value=int(self.low), to_value=int(self.high), step=0)]
+        return descriptor
+
+
+def _parameter_type(value: object) -> int:
+    if isinstance(value, bool):
+        return ParameterType.PARAMETER_BOOL
+    if isinstance(value, int):
+        return ParameterType.PARAMETER_INTEGER
+    if isinstance(value, float):
+        return ParameterType.PARAMETER_DOUBLE
+    return ParameterType.PARAMETER_STRING
+
+
+def declare_all(node: Node, params: Sequence[Param]) -> dict[str, object]:
+    """Declare the parameters (values from overrides or params files); InputError naming the first bad one."""
+    for param in params:
+        try:
+            node.declare_parameter(param.name, param.default, param.descriptor())
+        except ParameterException as error:
+            raise InputError(f"node '{node.get_name()}': parameter '{param.name}' refused: {_reason(error)}") from None
+    return {param.name: node.get_parameter(param.name).value for param in params}
+
+
+def _reason(error: ParameterException) -> str:
+    text = " ".join(str(error.args[0] if error.args else error).split())
+    text = text.split("Reason: ", 1)[-1]
+    if "of type 'INTEGER', expecting type 'DOUBLE'" in text:
+        text += " (write it with a decimal point, e.g. 5.0)"
+    return text
+
+
+def finite(value: float) -> bool:
+    """True for a finite float (not NaN, not +-inf)."""
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, threads: int = 1) -> int:
+    """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, shut down; 2 and one line for bad parameters."""
+    try:
+        rclpy.init(args=args)
+    except Exception as error:  # noqa: BLE001 -- rcl reports a bad --ros-args or params file this way
+        print(f"error: cannot start ROS: {' '.join(str(error).split())}", file=sys.stderr)
+        return 2
+    node = None
+    try:
+        node = make_node()
+        executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (InputError, ParameterException) as error:
+        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def exit_with(code: int) -> None:
+    """Leave the process with code when it is not 0 (entry points return None on success)."""
+    if code:
+        sys.exit(code)
