@@ -263,5 +263,5 @@ def test_stage_executable_reads_the_config_file_and_stops_on_sigterm():
         rest, _ = process.communicate(timeout=20)
     finally:
         process.kill()
-    assert process.returncode == 0
+    assert process.returncode == 0, rest
     assert "Traceback" not in rest

@@ -98,10 +98,10 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
     except Exception as error:  # noqa: BLE001 -- rcl reports a bad --ros-args or params file this way
         print(f"error: cannot start ROS: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
-    node = None
+    node = executor = None
     try:
-        node = make_node()
         executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
+        node = make_node()
         executor.add_node(node)
         executor.spin()
     except (InputError, ParameterException) as error:
@@ -109,7 +109,13 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # Ctrl-C/SIGTERM shut the context down under a running callback (e.g. "publisher's context is invalid")
     finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         if node is not None:
             close = getattr(node, "close", None)
             if close is not None:
