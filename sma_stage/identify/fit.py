@@ -29,10 +29,12 @@ from sma_stage.model.parameters import PARAMETER_NAMES, GPIParameters, check_ope
 MIN_SAMPLES = 20
 OPERATOR_CANDIDATES = (5, 10, 15, 20)
 OPERATOR_MARGIN = 0.02  # operators=None: smallest count whose RMS error is within 2 % of the best
-DEFAULT_STARTS = 4
 DEFAULT_MAX_ITERATIONS = 200
-SCREEN_SAMPLES = 3000  # multi-start screening runs on an evenly thinned copy of at most this size
-SCREEN_MAX_ITERATIONS = 60
+SURVEY_SAMPLES = 1000  # every start runs SURVEY_EVALUATIONS steps on a thinned copy of about this size,
+SURVEY_EVALUATIONS = 15
+FINALISTS = 3  # the best few then converge on a thinned copy of about SCREEN_SAMPLES samples
+SCREEN_SAMPLES = 3000
+SCREEN_MAX_ITERATIONS = 100
 TOLERANCE = 1e-10
 FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11")  # searched; a1 held, a10 projected
 _FREE_COLUMNS = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # their columns among the sensitivities (a1..a9, a11)
@@ -275,26 +277,45 @@ def _parameters(problem_a1: float, x: np.ndarray, a10: float, operators: int, un
     return normalized(GPIParameters.from_array(theta, output_unit=unit), operators)
 
 
-def _thinned(count: int) -> np.ndarray:
-    """Indices of an evenly thinned copy with at most SCREEN_SAMPLES samples (rate independence keeps
-    the loops; only turning points between kept samples are shaved)."""
-    stride = max(1, math.ceil(count / SCREEN_SAMPLES))
-    return np.arange(0, count, stride)
+def _thinned(u: np.ndarray, budget: int) -> np.ndarray:
+    """Indices of at most ~budget samples: the input's turning points (when there are few) and an even
+    stride. Between kept turning points the input is monotone, so by rate independence the model's
+    output at the kept samples is (nearly) unchanged."""
+    if u.size <= budget:
+        return np.arange(u.size)
+    slope = np.diff(u)
+    turning = np.flatnonzero(slope[:-1] * slope[1:] < 0.0) + 1
+    if turning.size > budget // 2:
+        turning = turning[:0]
+    stride = math.ceil(u.size / (budget - turning.size))
+    return np.union1d(np.union1d(np.arange(0, u.size, stride), turning), [u.size - 1])
 
 
 def _best_start(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
-                starts: Sequence[GPIParameters], progress: Callable[[str], None] | None) -> tuple[_Search, int]:
-    """The best of several searches on the thinned data; returns it and the iterations spent."""
-    keep = _thinned(u.size)
-    best, spent = None, 0
-    for number, start in enumerate(starts, 1):
-        found = _search(u[keep], y[keep], regressors[keep], operators, start, SCREEN_MAX_ITERATIONS)
+                starts: Sequence[GPIParameters], max_iterations: int,
+                progress: Callable[[str], None] | None) -> tuple[_Search, int, bool]:
+    """Survey every start briefly on a small thinned copy, then converge the best few on a larger one.
+
+    Returns the best search, the iterations spent and whether it ran on the full data."""
+    survey = _thinned(u, SURVEY_SAMPLES)
+    surveyed = [_search(u[survey], y[survey], regressors[survey], operators, start, SURVEY_EVALUATIONS)
+                for start in starts]
+    spent = sum(found.iterations for found in surveyed)
+    finalists = sorted(surveyed, key=lambda found: found.cost)[:FINALISTS]
+    _report(progress, f"{operators} operators: surveyed {len(starts)} starts on {survey.size} samples")
+    screen = _thinned(u, SCREEN_SAMPLES)
+    whole = screen.size == u.size
+    best = None
+    for number, finalist in enumerate(finalists, 1):
+        start = GPIParameters.from_array(_raw_theta(finalist))
+        found = _search(u[screen], y[screen], regressors[screen], operators, start,
+                        max_iterations if whole else SCREEN_MAX_ITERATIONS)
         spent += found.iterations
-        _report(progress, f"{operators} operators, start {number}/{len(starts)} on {keep.size} samples: "
-                f"cost {found.cost:.6g}")
+        _report(progress, f"{operators} operators, finalist {number}/{len(finalists)} on {screen.size} "
+                f"samples: cost {found.cost:.6g}")
         if best is None or found.cost < best.cost:
             best = found
-    return best, spent
+    return best, spent, whole
 
 
 def _report(progress: Callable[[str], None] | None, text: str) -> None:
@@ -305,7 +326,7 @@ def _report(progress: Callable[[str], None] | None, text: str) -> None:
 def _starts(u: np.ndarray, y: np.ndarray, operators: int, starts: int | Sequence[GPIParameters] | None,
             unit: str) -> list[GPIParameters]:
     if starts is None:
-        return start_points(u, y, operators, DEFAULT_STARTS, output_unit=unit)
+        return start_points(u, y, operators, output_unit=unit)
     if isinstance(starts, (int, np.integer)) and not isinstance(starts, bool):
         if starts < 1:
             raise InputError(f"starts must be at least 1, got {starts}")
@@ -322,11 +343,11 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
     """The full-data search for one operator count (after multi-start screening unless warm-started)."""
     spent = 0
     if initial is None:
-        screened, spent = _best_start(u, y, regressors, operators, _starts(u, y, operators, starts, unit),
-                                      progress)
-        initial = GPIParameters.from_array(_raw_theta(screened), output_unit=unit)
-        if u.size <= SCREEN_SAMPLES:
+        screened, spent, whole = _best_start(u, y, regressors, operators,
+                                             _starts(u, y, operators, starts, unit), max_iterations, progress)
+        if whole:
             return screened, spent
+        initial = GPIParameters.from_array(_raw_theta(screened), output_unit=unit)
     found = _search(u, y, regressors, operators, initial, max_iterations)
     _report(progress, f"{operators} operators on {u.size} samples: cost {found.cost:.6g}, "
             f"{found.iterations} iterations")
@@ -346,7 +367,7 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     operators None: each of OPERATOR_CANDIDATES is fitted and the smallest count whose RMS error is
     within OPERATOR_MARGIN of the best is kept (every count has the same parameter count, so an
     information criterion would just take the best). initial: a warm start (no multi-start).
-    starts: how many data-derived starts to screen (default 4), or the start points themselves.
+    starts: how many data-derived starts to survey (default: the 36-point grid of initial_guess), or the start points themselves.
     """
     clock = time.perf_counter()
     u, y = check_data(u, y)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from sma_stage.model.parameters import GPIParameters
@@ -10,35 +12,36 @@ SATURATION_ARGUMENT = 1.5  # tanh argument at the ends of the input range in the
 DENSITY_DECAY = 2.0  # a11 * largest threshold in the guess: the last weight is exp(-2) of the first
 WIDTH_BINS = 20
 DEFAULT_WIDTH_FRACTION = 0.1
-# (envelope gain, loop width, density decay, envelope asymmetry) factors of the further starts.
-START_VARIATIONS = (
-    (1.0, 1.0, 1.0, 1.0),
-    (2.5, 1.0, 1.0, 1.0),
-    (0.5, 0.5, 1.0, 1.0),
-    (1.0, 2.0, 0.25, 1.0),
-    (1.5, 0.5, 4.0, 0.7),
-    (0.7, 1.5, 1.0, 1.4),
-)
+# Factors on the plain guess spanned by the starts: envelope gain, loop width (threshold scale), density decay.
+GAIN_FACTORS = (1.0, 0.5, 2.0)
+WIDTH_FACTORS = (1.0, 2.0, 0.5, 4.0)
+DECAY_FACTORS = (1.0, 0.25, 4.0)
+
+
+def start_factors() -> list[tuple[float, float, float]]:
+    """The grid of (gain, width, decay) factors, nearest the plain guess (1, 1, 1) first."""
+    grid = list(itertools.product(GAIN_FACTORS, WIDTH_FACTORS, DECAY_FACTORS))
+    return sorted(grid, key=lambda factors: float(np.sum(np.abs(np.log(factors)))))
+
+
+DEFAULT_START_COUNT = len(GAIN_FACTORS) * len(WIDTH_FACTORS) * len(DECAY_FACTORS)
 
 
 def loop_width(u: np.ndarray, y: np.ndarray) -> float:
-    """Median vertical loop width [output unit]: falling-branch minus rising-branch output at equal input."""
-    rising = np.diff(u, prepend=u[0]) > 0.0
-    falling = np.diff(u, prepend=u[0]) < 0.0
-    edges = np.quantile(u, np.linspace(0.1, 0.9, WIDTH_BINS + 1))
-    bins = np.digitize(u, edges)
-    widths = []
+    """Largest vertical loop width [output unit]: falling- minus rising-branch mean output in bins of
+    equal input (the loop closes where the envelopes saturate, so the widest bin is the telling one)."""
+    slope = np.diff(u, prepend=u[0])
+    edges = np.linspace(np.min(u), np.max(u), WIDTH_BINS + 1)
+    bins = np.clip(np.digitize(u, edges), 1, WIDTH_BINS)
+    widths = [0.0]
     for b in range(1, WIDTH_BINS + 1):
         inside = bins == b
-        up, down = inside & rising, inside & falling
+        up, down = inside & (slope > 0.0), inside & (slope < 0.0)
         if up.any() and down.any():
             widths.append(np.mean(y[down]) - np.mean(y[up]))
-    widths = np.asarray(widths)
-    positive = widths[widths > 0.0]
     span = float(np.ptp(y))
-    if positive.size == 0:
-        return DEFAULT_WIDTH_FRACTION * span
-    return float(min(np.median(positive), 0.8 * span))
+    width = max(widths)
+    return float(min(width, 0.8 * span)) if width > 0.0 else DEFAULT_WIDTH_FRACTION * span
 
 
 def initial_guess(u: np.ndarray, y: np.ndarray, operators: int, gain_factor: float = 1.0,
@@ -71,11 +74,11 @@ def initial_guess(u: np.ndarray, y: np.ndarray, operators: int, gain_factor: flo
     )
 
 
-def start_points(u: np.ndarray, y: np.ndarray, operators: int, count: int, seed: int = 0,
+def start_points(u: np.ndarray, y: np.ndarray, operators: int, count: int = DEFAULT_START_COUNT, seed: int = 0,
                  output_unit: str = "m") -> list[GPIParameters]:
-    """count deterministic starts: the plain guess, then fixed variations, then seeded random ones."""
+    """count deterministic starts: the plain guess, then the grid of factors, then seeded random ones."""
     rng = np.random.default_rng(seed)
-    factors = list(START_VARIATIONS[:count])
+    factors = [(*f, 1.0) for f in start_factors()[:count]]
     while len(factors) < count:
-        factors.append(tuple(np.exp(rng.uniform(-1.0, 1.0, 4) * np.array([0.9, 0.9, 1.4, 0.4]))))
+        factors.append(tuple(np.exp(rng.uniform(-1.0, 1.0, 4) * np.array([0.9, 1.4, 1.4, 0.3]))))
     return [initial_guess(u, y, operators, *f, output_unit=output_unit) for f in factors]
