@@ -12,10 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rcl_interfaces.srv import SetParametersAtomically  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
@@ -26,7 +28,9 @@ from std_msgs.msg import Float64  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from sma_stage.errors import InputError  # noqa: E402
+from sma_stage.model import GPIInverseStream, GPIParameters, load_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
+from sma_stage.nodes.compensator_node import DEFAULT_MODEL, CompensatorNode  # noqa: E402
 from sma_stage.nodes.stage_node import StageNode  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,14 +50,17 @@ class Ros:
         rclpy.init(context=self.context, domain_id=unique_domain())
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
         self.nodes: list[Node] = []
+        self.error: Exception | None = None
+        self.closing = False
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
 
     def _spin(self) -> None:
         try:
             self.executor.spin()
-        except Exception:  # noqa: BLE001 -- the context is shut down under the executor at the end
-            pass
+        except Exception as error:  # noqa: BLE001 -- kept and raised by close() unless shutting down
+            if not self.closing:
+                self.error = error
 
     def add(self, node: Node) -> Node:
         self.nodes.append(node)
@@ -71,6 +78,7 @@ class Ros:
         return future.result()
 
     def close(self) -> None:
+        self.closing = True
         self.executor.shutdown(timeout_sec=5.0)
         self.thread.join(timeout=5.0)
         for node in self.nodes:
@@ -79,6 +87,8 @@ class Ros:
                 close()
             node.destroy_node()
         self.context.try_shutdown()
+        if self.error is not None:
+            raise AssertionError(f"a node callback raised: {self.error!r}") from self.error
 
 
 def wait_until(predicate, timeout: float = 5.0, what: str = "condition") -> None:
@@ -265,3 +275,149 @@ def test_stage_executable_reads_the_config_file_and_stops_on_sigterm():
         process.kill()
     assert process.returncode == 0, rest
     assert "Traceback" not in rest
+
+
+# --- compensator ---------------------------------------------------------------------------------
+
+DEFAULT_PARAMS = GPIParameters.from_dict(DEFAULT_MODEL)
+SETPOINTS_M = [0.0, 1e-4, 2.5e-4, 1.5e-4, -1e-4, -3e-4, 5e-5, 3e-4]
+
+
+def compensator_node(ros: Ros, **overrides) -> CompensatorNode:
+    params = [Parameter(name, value=value) for name, value in overrides.items()]
+    return ros.add(CompensatorNode(context=ros.context, parameter_overrides=params))
+
+
+class CompensatorProbe:
+    """Sends setpoints (and fake joint_states) to the compensator and keeps the commands it publishes."""
+
+    def __init__(self, ros: Ros, compensator: CompensatorNode) -> None:
+        self.node = ros.probe("compensator_probe")
+        self.commands = Listener(self.node, Float64, "current_cmd", COMMAND_QOS)
+        self.setpoint_pub = self.node.create_publisher(Float64, "setpoint", COMMAND_QOS)
+        self.state_pub = self.node.create_publisher(JointState, "joint_states", 10)
+        wait_until(lambda: compensator.count_publishers("setpoint") >= 1
+                   and self.node.count_publishers("current_cmd") >= 1, 5.0, "discovery")
+
+    def latest(self) -> float | None:
+        return self.commands.messages[-1].data if self.commands.messages else None
+
+    def command_for(self, setpoint_m: float, expected_a: float) -> float:
+        """Send a setpoint and wait until the latest command equals expected_a (to 1e-12 A)."""
+        self.setpoint_pub.publish(Float64(data=setpoint_m))
+        wait_until(lambda: self.latest() is not None and abs(self.latest() - expected_a) <= 1e-12, 5.0,
+                   f"current {expected_a!r} A for setpoint {setpoint_m} m (latest {self.latest()!r})")
+        return self.latest()
+
+    def measure(self, position_m: float) -> None:
+        self.state_pub.publish(JointState(name=["stage_x"], position=[position_m], velocity=[0.0]))
+
+
+@pytest.mark.parametrize("method", ["exact", "analytic"])
+def test_compensator_commands_equal_the_streaming_inverse(ros, method):
+    compensator = compensator_node(ros, inverse_method=method, rate_hz=2.0)
+    probe = CompensatorProbe(ros, compensator)
+    reference = GPIInverseStream(DEFAULT_PARAMS, 10, method, input_range=(-5.0, 5.0))
+    expected = [reference.step(setpoint) for setpoint in SETPOINTS_M]
+    assert len(set(expected)) == len(expected), "the setpoints must give distinct currents"
+    for setpoint, current in zip(SETPOINTS_M, expected, strict=True):
+        probe.command_for(setpoint, current)
+    assert all(abs(current) <= 5.0 for current in expected)
+
+
+def test_compensator_refuses_a_bad_model_parameter_and_keeps_the_model(ros):
+    compensator = compensator_node(ros, rate_hz=2.0)
+    result = compensator.set_parameters([Parameter("a9", value=-1e-5)])[0]
+    assert not result.successful and "a9" in result.reason and "\n" not in result.reason
+    result = compensator.set_parameters_atomically([Parameter("a10", value=-0.2)])
+    assert not result.successful and "invertible" in result.reason
+    result = compensator.set_parameters([Parameter("inverse_method", value="newton")])[0]
+    assert not result.successful and "inverse method" in result.reason
+    assert compensator.get_parameter("a9").value == DEFAULT_MODEL["a9"]
+    assert compensator.inverse.params == DEFAULT_PARAMS
+    probe = CompensatorProbe(ros, compensator)
+    reference = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-5.0, 5.0))
+    probe.command_for(2e-4, reference.step(2e-4))
+
+
+def test_compensator_takes_a_whole_model_through_its_parameter_service(ros):
+    compensator = compensator_node(ros, rate_hz=2.0)
+    probe = CompensatorProbe(ros, compensator)
+    new = DEFAULT_PARAMS.replace(a1=0.0004, a5=0.0004, a9=4e-5, a10=0.3)
+    request = SetParametersAtomically.Request(parameters=[
+        *[Parameter(name, value=value).to_parameter_msg() for name, value in new.to_dict().items()],
+        Parameter("operators", value=8).to_parameter_msg()])
+    answer = ros.call(probe.node, SetParametersAtomically, "compensator/set_parameters_atomically", request)
+    assert answer.result.successful, answer.result.reason
+    assert compensator.inverse.params == new and compensator.inverse.operators == 8
+    reference = GPIInverseStream(new, 8, "exact", input_range=(-5.0, 5.0))
+    for setpoint in SETPOINTS_M[:4]:
+        probe.command_for(setpoint, reference.step(setpoint))
+
+
+def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
+    path = tmp_path / "model.yaml"
+    first = DEFAULT_PARAMS.replace(a10=0.25)
+    first.to_yaml(path, operators=12)
+    compensator = compensator_node(ros, model_file=str(path), rate_hz=2.0)
+    assert compensator.inverse.params == first and compensator.get_parameter("operators").value == 12
+    assert compensator.get_parameter("a10").value == 0.25
+    probe = CompensatorProbe(ros, compensator)
+    for bad_text in ("kind: gpi\nparameters: [1, 2\n", "kind: gpi\noperators: 10\nparameters: {a1: 1.0}\n"):
+        path.write_text(bad_text)
+        answer = ros.call(probe.node, Trigger, "compensator/reload")
+        assert not answer.success and str(path) in answer.message and "\n" not in answer.message
+        assert compensator.inverse.params == first
+    second = DEFAULT_PARAMS.replace(a2=0.7)
+    second.to_yaml(path, operators=10)
+    answer = ros.call(probe.node, Trigger, "compensator/reload")
+    assert answer.success, answer.message
+    assert compensator.inverse.params == second and compensator.get_parameter("a2").value == 0.7
+    reference = GPIInverseStream(second, 10, "exact", input_range=(-5.0, 5.0))
+    probe.command_for(1e-4, reference.step(1e-4))
+
+
+def test_compensator_refuses_a_missing_model_file_at_start(ros, tmp_path):
+    with pytest.raises(InputError) as excinfo:
+        CompensatorNode(context=ros.context, parameter_overrides=[Parameter("model_file", value=str(tmp_path / "no.yaml"))])
+    assert "not found" in str(excinfo.value) and "\n" not in str(excinfo.value)
+
+
+def test_compensator_pi_integrates_the_error_with_anti_windup(ros):
+    compensator = compensator_node(ros, feedback=True, kp=0.0, ki=20.0, rate_hz=100.0, max_current=2.0)
+    probe = CompensatorProbe(ros, compensator)
+    feedforward = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-2.0, 2.0)).step(1e-4)
+    probe.measure(0.0)
+    wait_until(lambda: compensator.measured_m == 0.0, 5.0, "the measured position")
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: probe.latest() is not None and probe.latest() > feedforward + 0.05, 5.0,
+               "the integral action to raise the current above the feedforward")
+    wait_until(lambda: probe.latest() == 2.0, 10.0, "the current to saturate")
+    time.sleep(0.3)
+    wound = compensator.integral_m
+    time.sleep(0.3)
+    assert compensator.integral_m == wound, "the integrator must stop while the output saturates"
+    assert compensator.inverse.last_clipped == 1
+    probe.measure(1.2e-4)
+    wait_until(lambda: abs(probe.latest() - 2.0) > 1e-9, 1.0, "the command to leave saturation at once")
+
+
+def config_overrides(name: str) -> list[Parameter]:
+    """The parameters of config/<name>.yaml (its single node section) as overrides."""
+    document = yaml.safe_load((REPO / "config" / f"{name}.yaml").read_text())
+    (section,) = document.values()
+    return [Parameter(key, value=value) for key, value in section["ros__parameters"].items()]
+
+
+@pytest.mark.parametrize(("name", "node_type"), [("stage", StageNode), ("compensator", CompensatorNode)])
+def test_config_files_hold_valid_parameters_of_their_node(ros, name, node_type):
+    overrides = config_overrides(name)
+    node = ros.add(node_type(context=ros.context, parameter_overrides=overrides))
+    for override in overrides:
+        assert node.get_parameter(override.name).value == override.value
+    assert {p.name for p in overrides} >= set(node._parameters) - {"use_sim_time", "start_type_description_service"}, "every parameter documented"
+
+
+def test_compensator_default_model_is_the_default_model_file():
+    model = load_model_file(REPO / "config" / "model_default.yaml")
+    assert model.parameters == DEFAULT_PARAMS and model.operators == 10
