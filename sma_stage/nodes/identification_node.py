@@ -1,0 +1,449 @@
+"""The `identification` node: records `current_cmd` [A] and `joint_states` [m] into a bounded buffer (and
+into a rosbag2 directory when `record_bag` is set), drives the paper's identification signal on request,
+and refits the GPI model on request.
+
+Services (std_srvs/Trigger):
+- `~/excite`: publish A(t) sin(2 pi t / excite_period) on current_cmd, A falling linearly from
+  excite_amplitude_start to excite_amplitude_end over excite_duration [s of signal time]; returns at once.
+  Signal time = node-clock time since the start times excite_time_scale (set it to the stage's time_scale
+  when the stage runs faster than real time without use_sim_time; with use_sim_time keep 1).
+- `~/refit`: refused at once (success=false, one-line reason) while an excitation runs, while another refit
+  runs, or when the recording cannot support a fit. Otherwise fits the first (1 - holdout_fraction) of the
+  recording, validates on the held-out tail (the model runs over the whole recording, the errors are taken
+  on the tail only), writes `model_file` atomically, pushes a1..a11 and operators to
+  `<compensator_name>/set_parameters_atomically`, and answers with the JSON report (also on `~/report`).
+- `~/clear`: empties the buffer.
+
+The recording is aligned as the offline reader aligns a bag (sma_stage.io.rosbag_io): input held at each
+output time; output times are the JointState header stamps unless they run on another clock.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import threading
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.srv import SetParametersAtomically
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64, String
+from std_srvs.srv import Trigger
+
+from sma_stage.errors import InputError
+from sma_stage.identify.fit import fit_gpi, predict
+from sma_stage.identify.metrics import error_metrics
+from sma_stage.identify.report import fit_report
+from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
+from sma_stage.io.rosbag_io import output_times
+from sma_stage.io.series import Series
+from sma_stage.model.parameters import MAX_OPERATORS, GPIParameters
+from sma_stage.nodes._common import (
+    COMMAND_QOS,
+    JOINT_NAME,
+    REPORT_QOS,
+    STATE_SUBSCRIBE_QOS,
+    Param,
+    declare_all,
+    exit_with,
+    run_node,
+)
+from sma_stage.signals import paper_identification_signal
+
+STORAGES = ("sqlite3", "mcap")
+
+IDENTIFICATION_PARAMS = [
+    Param("max_samples", 200000, "ring buffer length per topic [messages]; the oldest are dropped", 100, 10**8,
+          read_only=True),
+    Param("min_samples", 100, "fewest aligned samples a refit accepts", 20, 10**8),
+    Param("holdout_fraction", 0.25, "tail of the recording held out for validation", 0.05, 0.5),
+    Param("operators", 10, "play operators of the fitted model (0: chosen by the fit)", 0, MAX_OPERATORS),
+    Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
+    Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)"),
+    Param("push_timeout", 2.0, "wait for the compensator's parameter service [s]", 0.0, 60.0),
+    Param("record_bag", "", "rosbag2 directory to record current_cmd and joint_states into; empty: none"),
+    Param("bag_storage", "sqlite3", f"rosbag2 storage: {' or '.join(STORAGES)}"),
+    Param("excite_amplitude_start", 5.0, "identification signal amplitude at its start [A]", 0.0, 20.0),
+    Param("excite_amplitude_end", 3.6, "identification signal amplitude at its end [A]", 0.0, 20.0),
+    Param("excite_period", 250.0, "identification signal period [s of signal time]", 0.001, 1e6),
+    Param("excite_duration", 1000.0, "identification signal length [s of signal time]", 0.001, 1e7),
+    Param("excite_rate_hz", 50.0, "identification signal publication rate [Hz]", 1.0, 2000.0),
+    Param("excite_time_scale", 1.0, "signal seconds per node-clock second (the stage's time_scale without "
+          "use_sim_time)", 0.001, 10000.0),
+    Param("clear_on_excite", True, "empty the buffer when ~/excite starts, so a refit sees only the excitation"),
+    Param("freeze_after_excite", True, "stop filling the buffer when an excitation ends (until ~/clear or "
+          "~/excite), so a refit sees only the excitation; the bag records on"),
+    Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
+]
+
+
+def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, int, float]],
+                     min_samples: int) -> Series:
+    """The checked Series (t [s], input [A], output [m]) of a recording; InputError saying what is missing."""
+    if not inputs:
+        raise InputError("no messages on current_cmd were recorded: is anything publishing it?")
+    if not outputs:
+        raise InputError("no messages on joint_states were recorded: is the stage running?")
+    input_ns, input_values = (np.array(column) for column in zip(*inputs, strict=True))
+    receive_ns, stamp_ns, positions = (np.array(column) for column in zip(*outputs, strict=True))
+    t, u, y = align_zero_order_hold(input_ns.astype(np.int64), input_values.astype(float),
+                                    output_times(receive_ns.astype(np.int64), stamp_ns.astype(np.int64)),
+                                    positions.astype(float))
+    if t.size == 0:
+        raise InputError("no joint_states message came at or after the first current_cmd message")
+    return make_series(t, u, y, "recording", min_samples=min_samples)
+
+
+def fit_recording(series: Series, operators: int | None, holdout_fraction: float) -> dict:
+    """Fit the head of the recording, validate on its held-out tail; the JSON report (design schema)."""
+    ident, tail = series.split(1.0 - holdout_fraction)
+    fit = fit_gpi(ident.input, ident.output, operators=operators)
+    predicted = predict(fit, series.input)[len(ident):]
+    validation = error_metrics(tail.output, predicted) if np.ptp(tail.output) > 0.0 else None
+    source = (f"held-out tail of the recording: last {100 * holdout_fraction:g} % ({len(tail)} samples, "
+              f"t = {tail.t[0]:.3f} to {tail.t[-1]:.3f} s), model run over the whole recording")
+    report = fit_report(fit, validation, source)
+    report["samples"] = {"identification": len(ident), "validation": len(tail)}
+    return report
+
+
+class BagThread:
+    """A BagRecorder driven from one thread of its own (the sqlite3 storage must stay in the thread that
+    opened it, while the executor calls back from several)."""
+
+    def __init__(self, path: Path, storage: str) -> None:
+        self.path = path
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._opened = threading.Event()
+        self._error: Exception | None = None
+        self._thread = threading.Thread(target=self._run, args=(storage,), name="bag-writer", daemon=True)
+        self._thread.start()
+        self._opened.wait()
+        if self._error is not None:
+            raise self._error
+
+    def _run(self, storage: str) -> None:
+        try:
+            recorder = BagRecorder.open(self.path, storage)
+        except Exception as error:  # noqa: BLE001 -- handed to the opening thread
+            self._error = error if isinstance(error, InputError) else InputError(f"cannot record {self.path}: {error}")
+            self._opened.set()
+            return
+        self._opened.set()
+        while (item := self._queue.get()) is not None:
+            method, arguments = item
+            getattr(recorder, method)(*arguments)
+        recorder.close()
+
+    def write_input(self, stamp_ns: int, value: float) -> None:
+        """Queue a current command [A] received at stamp_ns."""
+        self._queue.put(("write_input", (stamp_ns, value)))
+
+    def write_output(self, stamp_ns: int, position: float, velocity: float, receive_ns: int) -> None:
+        """Queue a JointState (header stamp stamp_ns, position [m], velocity [m/s]) received at receive_ns."""
+        self._queue.put(("write_output", (stamp_ns, position, velocity, receive_ns)))
+
+    def close(self) -> Path:
+        """Write what is queued, finish the bag (renamed into place) and return its path."""
+        self._queue.put(None)
+        self._thread.join()
+        return self.path
+
+
+def json_safe(value: object) -> object:
+    """The value with NaN/inf floats replaced by None, so json.dumps writes strict JSON."""
+    if isinstance(value, dict):
+        return {key: json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class IdentificationNode(Node):
+    """Records the stage's input and output, excites it, and refits the GPI model on request."""
+
+    def __init__(self, **node_options: object) -> None:
+        super().__init__("identification", **node_options)
+        self._lock = threading.Lock()
+        self.recorder: BagThread | None = None
+        try:
+            self.values = declare_all(self, IDENTIFICATION_PARAMS)
+            self.check_storage(str(self.values["bag_storage"]))
+            self.open_bag(str(self.values["record_bag"]), str(self.values["bag_storage"]))
+        except InputError as error:
+            self.destroy_node()
+            raise InputError(f"node 'identification': {error}") from None
+        self.inputs: deque[tuple[int, float]] = deque(maxlen=int(self.values["max_samples"]))
+        self.outputs: deque[tuple[int, int, float]] = deque(maxlen=int(self.values["max_samples"]))
+        self.excite_start_ns: int | None = None
+        self.excite_timer = None
+        self.frozen = False
+        self.refitting = False
+        self.last_report: dict | None = None
+        self.add_on_set_parameters_callback(self.on_set_parameters)
+        self.refit_group = ReentrantCallbackGroup()
+        self.push_group = MutuallyExclusiveCallbackGroup()
+        self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
+        self.report_pub = self.create_publisher(String, "~/report", REPORT_QOS)
+        self.create_subscription(Float64, "current_cmd", self.on_command, COMMAND_QOS)
+        self.create_subscription(JointState, "joint_states", self.on_joint_states, STATE_SUBSCRIBE_QOS)
+        self.create_service(Trigger, "~/excite", self.on_excite)
+        self.create_service(Trigger, "~/clear", self.on_clear)
+        self.create_service(Trigger, "~/refit", self.on_refit, callback_group=self.refit_group)
+        self.push_client = self.create_client(
+            SetParametersAtomically, f"{self.values['compensator_name']}/set_parameters_atomically",
+            callback_group=self.push_group)
+        self.get_logger().info("identification ready"
+                               + (f", recording into {self.recorder.path}" if self.recorder else ""))
+
+    # --- parameters and the bag ------------------------------------------------------------------
+
+    @staticmethod
+    def check_storage(storage: str) -> None:
+        """Refuse a rosbag2 storage this node cannot write."""
+        if storage not in STORAGES:
+            raise InputError(f"bag_storage must be one of {', '.join(STORAGES)}, got {storage!r}")
+
+    def open_bag(self, path: str, storage: str) -> None:
+        """Start recording into a new rosbag2 directory (none for an empty path)."""
+        if path:
+            self.recorder = BagThread(Path(path), storage)
+
+    def close_bag(self) -> None:
+        """Finish the bag being recorded (renamed into place)."""
+        recorder, self.recorder = self.recorder, None
+        if recorder is not None:
+            path = recorder.close()
+            self.get_logger().info(f"bag written: {path}")
+
+    def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
+        """Check changes; a new record_bag closes the current bag and starts the new one."""
+        candidate = {**self.values, **{change.name: change.value for change in changes}}
+        try:
+            self.check_storage(str(candidate["bag_storage"]))
+            if candidate["record_bag"] != self.values["record_bag"]:
+                self.close_bag()
+                self.open_bag(str(candidate["record_bag"]), str(candidate["bag_storage"]))
+        except (InputError, OSError) as error:
+            return SetParametersResult(successful=False, reason=" ".join(str(error).split()))
+        self.values = candidate
+        return SetParametersResult(successful=True)
+
+    def close(self) -> None:
+        """Stop exciting and finish the bag (called before the node is destroyed)."""
+        self.stop_excitation()
+        self.close_bag()
+
+    # --- recording -------------------------------------------------------------------------------
+
+    def now_ns(self) -> int:
+        """The node clock [ns] (simulated time with use_sim_time)."""
+        return self.get_clock().now().nanoseconds
+
+    def on_command(self, message: Float64) -> None:
+        """Record a current command [A] at its arrival time."""
+        receive_ns, value = self.now_ns(), float(message.data)
+        with self._lock:
+            if not self.frozen:
+                self.inputs.append((receive_ns, value))
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.write_input(receive_ns, value)
+
+    def on_joint_states(self, message: JointState) -> None:
+        """Record the stage position [m] with its header stamp and arrival time."""
+        names = list(message.name)
+        joint = str(self.values["joint_name"])
+        index = names.index(joint) if joint in names else (0 if not names else None)
+        if index is None or index >= len(message.position):
+            return
+        receive_ns = self.now_ns()
+        stamp_ns = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
+        position = float(message.position[index])
+        velocity = float(message.velocity[index]) if index < len(message.velocity) else 0.0
+        with self._lock:
+            if not self.frozen:
+                self.outputs.append((receive_ns, stamp_ns, position))
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.write_output(stamp_ns, position, velocity, receive_ns)
+
+    def on_clear(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Empty the buffer."""
+        with self._lock:
+            dropped = len(self.inputs) + len(self.outputs)
+            self.inputs.clear()
+            self.outputs.clear()
+            self.frozen = False
+        response.success, response.message = True, f"buffer cleared ({dropped} messages dropped)"
+        return response
+
+    # --- excitation ------------------------------------------------------------------------------
+
+    @property
+    def exciting(self) -> bool:
+        """True while the identification signal is being driven."""
+        return self.excite_timer is not None
+
+    def signal_time_s(self) -> float:
+        """Seconds of signal time since the excitation started."""
+        return (self.now_ns() - self.excite_start_ns) * 1e-9 * float(self.values["excite_time_scale"])
+
+    def on_excite(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Start driving the identification signal and return at once."""
+        if self.exciting:
+            response.success = False
+            response.message = f"an excitation is running ({self.excitation_left_s():.1f} s of signal left)"
+            return response
+        if self.values["clear_on_excite"]:
+            self.on_clear(request, Trigger.Response())
+        with self._lock:
+            self.frozen = False
+        self.excite_start_ns = self.now_ns()
+        self.excite_timer = self.create_timer(1.0 / float(self.values["excite_rate_hz"]), self.on_excite_tick)
+        self.on_excite_tick()
+        response.success = True
+        response.message = (f"exciting: {self.values['excite_amplitude_start']:g} A falling to "
+                            f"{self.values['excite_amplitude_end']:g} A, period {self.values['excite_period']:g} s, "
+                            f"{self.values['excite_duration']:g} s of signal time")
+        self.get_logger().info(response.message)
+        return response
+
+    def excitation_left_s(self) -> float:
+        """Seconds of signal time the excitation still runs."""
+        return max(float(self.values["excite_duration"]) - self.signal_time_s(), 0.0)
+
+    def on_excite_tick(self) -> None:
+        """Publish the signal's current value; at the end publish zero and stop."""
+        if self.excite_timer is None:
+            return
+        t = self.signal_time_s()
+        duration = float(self.values["excite_duration"])
+        if t >= duration:
+            self.command_pub.publish(Float64(data=0.0))
+            self.stop_excitation()
+            with self._lock:
+                self.frozen = bool(self.values["freeze_after_excite"])
+            self.get_logger().info("excitation finished: ~/refit can fit it now"
+                                   + (" (buffer frozen until ~/clear or ~/excite)" if self.frozen else ""))
+            return
+        value = paper_identification_signal(t, float(self.values["excite_amplitude_start"]),
+                                            float(self.values["excite_amplitude_end"]),
+                                            float(self.values["excite_period"]), duration)
+        self.command_pub.publish(Float64(data=float(value)))
+
+    def stop_excitation(self) -> None:
+        """Stop the excitation timer (the current stays at the last value published)."""
+        timer, self.excite_timer = self.excite_timer, None
+        if timer is not None:
+            self.destroy_timer(timer)
+
+    # --- refit -----------------------------------------------------------------------------------
+
+    def refusal(self) -> str | None:
+        """Why a refit cannot start now (None when it can), and mark it running otherwise."""
+        with self._lock:
+            if self.exciting:
+                return (f"an excitation is running ({self.excitation_left_s():.1f} s of signal left): "
+                        "call ~/refit after it ends")
+            if self.refitting:
+                return "a refit is already running"
+            self.refitting = True
+            return None
+
+    def snapshot(self) -> Series:
+        """The recording so far as a checked Series (InputError when it cannot support a fit)."""
+        with self._lock:
+            inputs, outputs = list(self.inputs), list(self.outputs)
+        return recording_series(inputs, outputs, int(self.values["min_samples"]))
+
+    def on_refit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Fit the recording (in this executor worker thread) and answer with the JSON report."""
+        reason = self.refusal()
+        if reason is not None:
+            response.success, response.message = False, reason
+            self.get_logger().warning(f"~/refit refused: {reason}")
+            return response
+        try:
+            report = self.refit()
+        except InputError as error:
+            response.success, response.message = False, f"refit refused: {error}"
+            self.get_logger().warning(response.message)
+            return response
+        except Exception as error:  # noqa: BLE001 -- a failing fit must not take the node down
+            response.success = False
+            response.message = f"refit failed: {type(error).__name__}: {' '.join(str(error).split())}"
+            self.get_logger().error(response.message)
+            return response
+        finally:
+            with self._lock:
+                self.refitting = False
+        text = json.dumps(json_safe(report))
+        self.last_report = report
+        self.report_pub.publish(String(data=text))
+        response.success, response.message = True, text
+        self.get_logger().info(f"refit done in {report['fit_seconds']:.2f} s; {'; '.join(report['warnings']) or 'ok'}")
+        return response
+
+    def refit(self) -> dict:
+        """Fit, validate, write the model file, push the parameters; the report (InputError when refused)."""
+        series = self.snapshot()
+        operators = int(self.values["operators"]) or None
+        report = fit_recording(series, operators, float(self.values["holdout_fraction"]))
+        model = report["model"]
+        report["warnings"] = []
+        report["model_file"] = self.write_model(model, series)
+        report["compensator"] = self.push(model)
+        if not report["compensator"]["pushed"]:
+            report["warnings"].append(report["compensator"]["message"])
+        return report
+
+    def write_model(self, model: dict, series: Series) -> str | None:
+        """Write the fitted model file atomically (None when model_file is empty)."""
+        path = str(self.values["model_file"])
+        if not path:
+            return None
+        params = GPIParameters.from_dict(model["parameters"], output_unit=model["output_unit"])
+        metadata = {"source": "identification node ~/refit", "samples": len(series)}
+        try:
+            params.to_yaml(path, int(model["operators"]), metadata=metadata)
+        except OSError as error:
+            raise InputError(f"cannot write model_file {path}: {error.strerror or error}") from None
+        return path
+
+    def push(self, model: dict) -> dict:
+        """Send a1..a11 and operators to the compensator in one atomic parameter set."""
+        name = self.push_client.srv_name
+        if not self.push_client.wait_for_service(timeout_sec=float(self.values["push_timeout"])):
+            return {"pushed": False, "message": f"compensator service {name} not available: parameters not pushed"}
+        parameters = [Parameter(key, value=float(value)).to_parameter_msg() for key, value in model["parameters"].items()]
+        parameters.append(Parameter("operators", value=int(model["operators"])).to_parameter_msg())
+        future = self.push_client.call_async(SetParametersAtomically.Request(parameters=parameters))
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        if not done.wait(max(float(self.values["push_timeout"]), 1.0)) or future.result() is None:
+            return {"pushed": False, "message": f"no answer from {name}: parameters may not be in force"}
+        result = future.result().result
+        if not result.successful:
+            return {"pushed": False, "message": f"compensator refused the parameters: {result.reason}"}
+        return {"pushed": True, "message": f"parameters set through {name}"}
+
+
+def main(args: list[str] | None = None) -> None:
+    """Entry point `identification_node`."""
+    exit_with(run_node(IdentificationNode, args, threads=4))
+
+
+if __name__ == "__main__":
+    main()
