@@ -36,6 +36,7 @@ FINALISTS = 3  # the best few then converge on a thinned copy of about SCREEN_SA
 SCREEN_SAMPLES = 3000
 SCREEN_MAX_ITERATIONS = 100
 TOLERANCE = 1e-10
+PROGRESS_INTERVAL_S = 1.0
 FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11")  # searched; a1 held, a10 projected
 _FREE_COLUMNS = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # their columns among the sensitivities (a1..a9, a11)
 
@@ -170,8 +171,10 @@ class _Projected:
     TRF works on an 10-row problem with the same cost, gradient and Gauss-Newton model as the N-row one.
     """
 
-    def __init__(self, v: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, a1: float):
+    def __init__(self, v: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, a1: float,
+                 progress: Callable[[str], None] | None = None):
         self.v, self.y, self.regressors, self.operators, self.a1 = v, y, regressors, operators, a1
+        self.progress, self._reported = progress, time.perf_counter()
         m = regressors.shape[1]
         self._rows = np.empty((m + 2 + SENSITIVITY_COLUMNS, v.size))
         skip_a1 = [m + 1 + c for c in _FREE_COLUMNS]
@@ -199,6 +202,10 @@ class _Projected:
         self.residual = -r[first:, -1]
         self.jacobian = coefficients[-1] * r[first:, linear:-1]
         self._x = x.copy()
+        if self.progress is not None and time.perf_counter() - self._reported >= PROGRESS_INTERVAL_S:
+            self._reported = time.perf_counter()
+            self.progress(f"{self.operators} operators on {self.v.size} samples: evaluation {self.evaluations}, "
+                          f"cost {float(self.residual @ self.residual):.6g}")
 
     def fun(self, x: np.ndarray) -> np.ndarray:
         self._evaluate(x)
@@ -259,12 +266,12 @@ class _Search:
 
 
 def _search(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
-            max_iterations: int) -> _Search:
+            max_iterations: int, progress: Callable[[str], None] | None = None) -> _Search:
     a1, x0 = _free_start(start)
     low, high = _bounds(u, y, a1, operators)
     span = high - low
     x0 = np.clip(x0, low + 1e-9 * span, high - 1e-9 * span)
-    problem = _Projected(u, y, regressors, operators, a1)
+    problem = _Projected(u, y, regressors, operators, a1, progress)
     solution = least_squares(problem.fun, x0, jac=problem.jac, bounds=(low, high), method="trf",
                              x_scale="jac", ftol=TOLERANCE, xtol=TOLERANCE, gtol=TOLERANCE,
                              max_nfev=max_iterations)
@@ -348,7 +355,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
         if whole:
             return screened, spent
         initial = GPIParameters.from_array(_raw_theta(screened), output_unit=unit)
-    found = _search(u, y, regressors, operators, initial, max_iterations)
+    found = _search(u, y, regressors, operators, initial, max_iterations, progress)
     _report(progress, f"{operators} operators on {u.size} samples: cost {found.cost:.6g}, "
             f"{found.iterations} iterations")
     return found, spent + found.iterations
@@ -367,7 +374,7 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     operators None: each of OPERATOR_CANDIDATES is fitted and the smallest count whose RMS error is
     within OPERATOR_MARGIN of the best is kept (every count has the same parameter count, so an
     information criterion would just take the best). initial: a warm start (no multi-start).
-    starts: how many data-derived starts to survey (default: the 36-point grid of initial_guess), or the start points themselves.
+    starts: how many data-derived starts to survey (default: all of initial_guess.start_points), or the start points themselves.
     """
     clock = time.perf_counter()
     u, y = check_data(u, y)

@@ -46,9 +46,9 @@ def loop_width(u: np.ndarray, y: np.ndarray) -> float:
 
 def initial_guess(u: np.ndarray, y: np.ndarray, operators: int, gain_factor: float = 1.0,
                   width_factor: float = 1.0, decay_factor: float = 1.0, asymmetry: float = 1.0,
-                  output_unit: str = "m") -> GPIParameters:
+                  output_unit: str = "m", width: float | None = None) -> GPIParameters:
     """A guess with densities summing to 1: envelopes from the input range and output span, thresholds
-    from the loop width (rising branch ~ gl - mean r, falling ~ gr + mean r)."""
+    from the loop width (rising branch ~ gl - mean r, falling ~ gr + mean r; width: loop_width(u, y))."""
     u_low, u_high = float(np.min(u)), float(np.max(u))
     centre, half_range = 0.5 * (u_low + u_high), 0.5 * (u_high - u_low)
     gain = gain_factor * SATURATION_ARGUMENT / half_range
@@ -56,7 +56,7 @@ def initial_guess(u: np.ndarray, y: np.ndarray, operators: int, gain_factor: flo
     indices = np.arange(operators)
     weights = np.exp(-decay_per_operator * indices)
     weights /= weights.sum()
-    width = width_factor * loop_width(u, y)
+    width = width_factor * (loop_width(u, y) if width is None else width)
     if operators > 1:
         a9 = 0.5 * width / float(weights @ indices)
         mean_threshold, envelope_gap = 0.5 * width, 0.0
@@ -81,4 +81,5 @@ def start_points(u: np.ndarray, y: np.ndarray, operators: int, count: int = DEFA
     factors = [(*f, 1.0) for f in start_factors()[:count]]
     while len(factors) < count:
         factors.append(tuple(np.exp(rng.uniform(-1.0, 1.0, 4) * np.array([0.9, 1.4, 1.4, 0.3]))))
-    return [initial_guess(u, y, operators, *f, output_unit=output_unit) for f in factors]
+    width = loop_width(u, y)
+    return [initial_guess(u, y, operators, *f, output_unit=output_unit, width=width) for f in factors]
