@@ -222,7 +222,7 @@ def test_stage_parameter_ranges_are_enforced(ros):
 
 
 def test_stage_with_sim_time_publishes_a_fast_clock(ros):
-    stage_node(ros, rate_hz=100.0, time_scale=20.0, use_sim_time=True)
+    stage_node(ros, rate_hz=100.0, time_scale=100.0, use_sim_time=True)
     listener = Listener(ros.probe(), ClockMessage, "/clock")
     wait_until(lambda: len(listener.messages) >= 2, 10.0, "/clock")
     first, start = listener.messages[-1].clock, time.monotonic()
@@ -412,7 +412,8 @@ def config_overrides(name: str) -> list[Parameter]:
     return [Parameter(key, value=value) for key, value in section["ros__parameters"].items()]
 
 
-@pytest.mark.parametrize(("name", "node_type"), [("stage", StageNode), ("compensator", CompensatorNode)])
+@pytest.mark.parametrize(("name", "node_type"), [("stage", StageNode), ("compensator", CompensatorNode),
+                                                 ("identification", IdentificationNode)])
 def test_config_files_hold_valid_parameters_of_their_node(ros, name, node_type):
     overrides = config_overrides(name)
     node = ros.add(node_type(context=ros.context, parameter_overrides=overrides))
@@ -479,3 +480,96 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     assert len(from_bag) > len(recorded), "the bag records before and after the excitation too"
     assert np.ptp(from_bag.input) >= np.ptp(recorded.input) > 5.0
     print(json.dumps({key: report[key] for key in ("identification", "validation", "samples", "fit_seconds")}))
+
+
+class FakeStage:
+    """Publishes hand-made current_cmd and joint_states messages (stamped with the probe's clock)."""
+
+    def __init__(self, ros: Ros, identification: IdentificationNode) -> None:
+        self.node = ros.probe("fake_stage")
+        command_pub = self.node.create_publisher(Float64, "current_cmd", 1000)
+        self.send_command = lambda value: command_pub.publish(Float64(data=float(value)))
+        self.state_pub = self.node.create_publisher(JointState, "joint_states", 1000)
+        wait_until(lambda: identification.count_publishers("joint_states") >= 1
+                   and identification.count_publishers("current_cmd") >= 2, 5.0, "discovery")
+
+    def publish(self, currents, positions=None, commands=True, states=True) -> None:
+        positions = np.tanh(np.asarray(currents) / 3.0) * 1e-4 if positions is None else positions
+        for current, position in zip(currents, positions, strict=True):
+            if commands:
+                self.send_command(current)
+            if states:
+                message = JointState(name=["stage_x"], position=[float(position)], velocity=[0.0])
+                message.header.stamp = self.node.get_clock().now().to_msg()
+                self.state_pub.publish(message)
+            time.sleep(0.002)
+
+
+def refit_answer(ros: Ros, probe: Node):
+    return ros.call(probe, Trigger, "identification/refit", timeout=30.0)
+
+
+def test_identification_refuses_a_refit_without_enough_data(ros):
+    identification = identification_node(ros, min_samples=50, push_timeout=0.1)
+    fake = FakeStage(ros, identification)
+    answer = refit_answer(ros, fake.node)
+    assert not answer.success and "no messages on current_cmd" in answer.message
+    fake.publish(np.linspace(-4.0, 4.0, 30), states=False)
+    wait_until(lambda: len(identification.inputs) == 30, 5.0, "30 recorded commands")
+    answer = refit_answer(ros, fake.node)
+    assert not answer.success and "no messages on joint_states" in answer.message
+    fake.publish(np.linspace(-4.0, 4.0, 20))
+    wait_until(lambda: len(identification.outputs) == 20, 5.0, "20 recorded positions")
+    answer = refit_answer(ros, fake.node)
+    assert not answer.success and "at least 50" in answer.message and "\n" not in answer.message
+    answer = ros.call(fake.node, Trigger, "identification/clear")
+    assert answer.success and not identification.inputs and not identification.outputs
+    fake.publish(np.full(60, 1.0))
+    wait_until(lambda: len(identification.outputs) == 60, 5.0, "60 recorded positions")
+    answer = refit_answer(ros, fake.node)
+    assert not answer.success and "no excitation" in answer.message
+    assert identification.last_report is None
+
+
+def test_identification_refuses_a_refit_on_nan_data(ros):
+    identification = identification_node(ros, min_samples=50, push_timeout=0.1)
+    fake = FakeStage(ros, identification)
+    currents = 4.0 * np.sin(np.linspace(0.0, 4.0 * np.pi, 80))
+    positions = np.tanh(currents / 3.0) * 1e-4
+    positions[40] = np.nan
+    fake.publish(currents, positions)
+    wait_until(lambda: len(identification.outputs) == 80, 5.0, "80 recorded positions")
+    answer = refit_answer(ros, fake.node)
+    assert not answer.success and "nan" in answer.message.lower() and "output" in answer.message
+
+
+def test_identification_refit_without_a_compensator_warns_in_the_report(ros, tmp_path):
+    identification = identification_node(ros, min_samples=50, push_timeout=0.2, operators=5,
+                                         compensator_name="no_such_compensator")
+    fake = FakeStage(ros, identification)
+    currents = 4.0 * np.sin(np.linspace(0.0, 4.0 * np.pi, 120))
+    fake.publish(currents)
+    wait_until(lambda: len(identification.outputs) == 120, 5.0, "120 recorded positions")
+    answer = refit_answer(ros, fake.node)
+    assert answer.success, answer.message
+    report = json.loads(answer.message)
+    assert not report["compensator"]["pushed"]
+    assert any("no_such_compensator" in warning for warning in report["warnings"])
+    assert report["model_file"] is None and report["model"]["operators"] == 5
+
+
+def test_identification_excite_runs_once_at_a_time_and_drives_current_cmd(ros):
+    identification = identification_node(ros, excite_period=1.0, excite_duration=30.0, excite_rate_hz=100.0)
+    probe = ros.probe()
+    commands = Listener(probe, Float64, "current_cmd", COMMAND_QOS)
+    wait_until(lambda: identification.count_subscribers("current_cmd") >= 1
+               and probe.count_publishers("current_cmd") >= 1, 5.0, "discovery")
+    assert ros.call(probe, Trigger, "identification/excite").success
+    again = ros.call(probe, Trigger, "identification/excite")
+    assert not again.success and "running" in again.message
+    wait_until(lambda: len(commands.messages) >= 110, 5.0, "110 excitation commands (over one period)")
+    values = np.array([message.data for message in commands.messages])
+    assert values.max() > 3.0 and values.min() < -3.0 and np.all(np.abs(values) <= 5.0)
+    refused = refit_answer(ros, probe)
+    assert not refused.success and "excitation is running" in refused.message
+    identification.stop_excitation()

@@ -48,8 +48,9 @@ from sma_stage.model.parameters import MAX_OPERATORS, GPIParameters
 from sma_stage.nodes._common import (
     COMMAND_QOS,
     JOINT_NAME,
+    RECORD_COMMAND_QOS,
+    RECORD_STATE_QOS,
     REPORT_QOS,
-    STATE_SUBSCRIBE_QOS,
     Param,
     declare_all,
     exit_with,
@@ -196,8 +197,8 @@ class IdentificationNode(Node):
         self.push_group = MutuallyExclusiveCallbackGroup()
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
         self.report_pub = self.create_publisher(String, "~/report", REPORT_QOS)
-        self.create_subscription(Float64, "current_cmd", self.on_command, COMMAND_QOS)
-        self.create_subscription(JointState, "joint_states", self.on_joint_states, STATE_SUBSCRIBE_QOS)
+        self.create_subscription(Float64, "current_cmd", self.on_command, RECORD_COMMAND_QOS)
+        self.create_subscription(JointState, "joint_states", self.on_joint_states, RECORD_STATE_QOS)
         self.create_service(Trigger, "~/excite", self.on_excite)
         self.create_service(Trigger, "~/clear", self.on_clear)
         self.create_service(Trigger, "~/refit", self.on_refit, callback_group=self.refit_group)
