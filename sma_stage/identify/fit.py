@@ -24,7 +24,7 @@ from sma_stage.identify._sensitivity import SENSITIVITY_COLUMNS, householder_r, 
 from sma_stage.identify.initial_guess import start_points
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.forward import as_signal, forward, initial_states
-from sma_stage.model.parameters import PARAMETER_NAMES, GPIParameters, check_operators
+from sma_stage.model.parameters import DEFAULT_OPERATORS, PARAMETER_NAMES, GPIParameters, check_operators
 
 MIN_SAMPLES = 20
 OPERATOR_CANDIDATES = (5, 10, 15, 20)
@@ -298,31 +298,27 @@ def _thinned(u: np.ndarray, budget: int) -> np.ndarray:
     return np.union1d(np.union1d(np.arange(0, u.size, stride), turning), [u.size - 1])
 
 
-def _best_start(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
-                starts: Sequence[GPIParameters], max_iterations: int,
-                progress: Callable[[str], None] | None) -> tuple[_Search, int, bool]:
-    """Survey every start briefly on a small thinned copy, then converge the best few on a larger one.
-
-    Returns the best search, the iterations spent and whether it ran on the full data."""
+def _survey(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
+            starts: Sequence[GPIParameters], progress: Callable[[str], None] | None) -> tuple[list[GPIParameters], int]:
+    """Run every start SURVEY_EVALUATIONS steps on a small thinned copy; the best FINALISTS become the
+    start points (and the iterations spent)."""
+    if len(starts) == 1:
+        return list(starts), 0
     survey = _thinned(u, SURVEY_SAMPLES)
     surveyed = [_search(u[survey], y[survey], regressors[survey], operators, start, SURVEY_EVALUATIONS)
                 for start in starts]
-    spent = sum(found.iterations for found in surveyed)
-    finalists = sorted(surveyed, key=lambda found: found.cost)[:FINALISTS]
     _report(progress, f"{operators} operators: surveyed {len(starts)} starts on {survey.size} samples")
-    screen = _thinned(u, SCREEN_SAMPLES)
-    whole = screen.size == u.size
-    best = None
-    for number, finalist in enumerate(finalists, 1):
-        start = GPIParameters.from_array(_raw_theta(finalist))
-        found = _search(u[screen], y[screen], regressors[screen], operators, start,
-                        max_iterations if whole else SCREEN_MAX_ITERATIONS)
-        spent += found.iterations
-        _report(progress, f"{operators} operators, finalist {number}/{len(finalists)} on {screen.size} "
-                f"samples: cost {found.cost:.6g}")
-        if best is None or found.cost < best.cost:
-            best = found
-    return best, spent, whole
+    finalists = sorted(surveyed, key=lambda found: found.cost)[:FINALISTS]
+    return [_start_from(found) for found in finalists], sum(found.iterations for found in surveyed)
+
+
+def _carried(starts: Sequence[GPIParameters], operators: int, new_operators: int) -> list[GPIParameters]:
+    """Starts for another operator count: each with the same largest threshold, and as it is (the same
+    threshold step)."""
+    if new_operators == operators:
+        return list(starts)
+    ratio = max(operators - 1, 1) / max(new_operators - 1, 1)
+    return [params.replace(a9=params.a9 * ratio) for params in starts] + list(starts)
 
 
 def _report(progress: Callable[[str], None] | None, text: str) -> None:
@@ -345,24 +341,36 @@ def _starts(u: np.ndarray, y: np.ndarray, operators: int, starts: int | Sequence
 
 
 def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
-               initial: GPIParameters | None, starts: int | Sequence[GPIParameters] | None,
-               max_iterations: int, unit: str, progress: Callable[[str], None] | None) -> tuple[_Search, int]:
-    """The full-data search for one operator count (after multi-start screening unless warm-started)."""
+               starts: Sequence[GPIParameters], max_iterations: int,
+               progress: Callable[[str], None] | None) -> tuple[_Search, int]:
+    """Converge several starts on a thinned copy and refine the best on all samples (one start: straight
+    to all samples). Returns the search and the iterations spent."""
+    screen = _thinned(u, SCREEN_SAMPLES)
+    whole = screen.size == u.size
     spent = 0
-    if initial is None:
-        screened, spent, whole = _best_start(u, y, regressors, operators,
-                                             _starts(u, y, operators, starts, unit), max_iterations, progress)
+    start = starts[0]
+    if len(starts) > 1:
+        best = None
+        for number, candidate in enumerate(starts, 1):
+            found = _search(u[screen], y[screen], regressors[screen], operators, candidate,
+                            max_iterations if whole else SCREEN_MAX_ITERATIONS)
+            spent += found.iterations
+            _report(progress, f"{operators} operators, finalist {number}/{len(starts)} on {screen.size} "
+                    f"samples: cost {found.cost:.6g}")
+            if best is None or found.cost < best.cost:
+                best = found
         if whole:
-            return screened, spent
-        initial = GPIParameters.from_array(_raw_theta(screened), output_unit=unit)
-    found = _search(u, y, regressors, operators, initial, max_iterations, progress)
+            return best, spent
+        start = _start_from(best)
+    found = _search(u, y, regressors, operators, start, max_iterations, progress)
     _report(progress, f"{operators} operators on {u.size} samples: cost {found.cost:.6g}, "
             f"{found.iterations} iterations")
     return found, spent + found.iterations
 
 
-def _raw_theta(found: _Search) -> np.ndarray:
-    return np.concatenate([[found.a1], found.x[:8], [1.0, found.x[8]]])
+def _start_from(found: _Search) -> GPIParameters:
+    """The parameters a search reached, in its own scale (a1 held, a10 a placeholder: it is projected)."""
+    return GPIParameters.from_array(np.concatenate([[found.a1], found.x[:8], [1.0, found.x[8]]]))
 
 
 def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial: GPIParameters | None = None,
@@ -374,7 +382,10 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     operators None: each of OPERATOR_CANDIDATES is fitted and the smallest count whose RMS error is
     within OPERATOR_MARGIN of the best is kept (every count has the same parameter count, so an
     information criterion would just take the best). initial: a warm start (no multi-start).
-    starts: how many data-derived starts to survey (default: all of initial_guess.start_points), or the start points themselves.
+    starts: how many data-derived starts to survey (default: all of initial_guess.start_points), or the
+    start points themselves. The survey runs once (10 operators, or the given count); its best few
+    starts, carried to each other count (same largest threshold; same threshold step), are converged
+    on a thinned copy and the best is refined on all samples.
     """
     clock = time.perf_counter()
     u, y = check_data(u, y)
@@ -384,12 +395,19 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
         raise InputError(f"max_iterations must be a positive integer, got {max_iterations!r}")
     counts = OPERATOR_CANDIDATES if operators is None else (check_operators(operators),)
+    reference = DEFAULT_OPERATORS if DEFAULT_OPERATORS in counts else counts[0]
+    if initial is None:
+        finalists, iterations = _survey(u, y, matrix, reference, _starts(u, y, reference, starts, output_unit),
+                                        progress)
+    else:
+        finalists, iterations, reference = [initial], 0, None
     fits = {}
     for count in counts:
-        fits[count] = _fit_count(u, y, matrix, count, initial, starts, int(max_iterations), output_unit, progress)
+        count_starts = finalists if reference is None else _carried(finalists, reference, count)
+        fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress)
     chosen = _choose_count({count: found.cost for count, (found, _) in fits.items()})
     found = fits[chosen][0]
-    iterations = sum(spent for _, spent in fits.values())
+    iterations += sum(spent for _, spent in fits.values())
     return _result(u, y, matrix, chosen, found, iterations, time.perf_counter() - clock, output_unit)
 
 
