@@ -573,3 +573,54 @@ def test_identification_excite_runs_once_at_a_time_and_drives_current_cmd(ros):
     refused = refit_answer(ros, probe)
     assert not refused.success and "excitation is running" in refused.message
     identification.stop_excitation()
+
+
+def test_identification_keeps_serving_during_a_refit(ros, monkeypatch):
+    import sma_stage.nodes.identification_node as module
+
+    release = threading.Event()
+    real_fit = module.fit_recording
+
+    def held_fit(*args, **kwargs):
+        assert release.wait(20.0)
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(module, "fit_recording", held_fit)
+    identification = identification_node(ros, min_samples=50, push_timeout=0.1, operators=5)
+    fake = FakeStage(ros, identification)
+    fake.publish(4.0 * np.sin(np.linspace(0.0, 4.0 * np.pi, 100)))
+    wait_until(lambda: len(identification.outputs) == 100, 5.0, "100 recorded positions")
+    client = fake.node.create_client(Trigger, "identification/refit")
+    assert client.wait_for_service(timeout_sec=5.0)
+    first = client.call_async(Trigger.Request())
+    wait_until(lambda: identification.refitting, 5.0, "the refit to start")
+    second = refit_answer(ros, fake.node)
+    assert not second.success and "already running" in second.message
+    fake.publish([1.0, 2.0, 3.0])
+    wait_until(lambda: len(identification.outputs) == 103, 5.0, "recording during the refit")
+    assert ros.call(fake.node, Trigger, "identification/clear").success
+    release.set()
+    wait_until(first.done, 30.0, "the first refit")
+    assert first.result().success, first.result().message
+    samples = json.loads(first.result().message)["samples"]
+    total = samples["identification"] + samples["validation"]
+    assert 95 <= total <= 100 and samples["identification"] == round(0.75 * total), "the recording as it was"
+
+
+def test_identification_record_bag_can_be_switched_while_running(ros, tmp_path):
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    identification = identification_node(ros, bag_storage="mcap")
+    result = identification.set_parameters([Parameter("record_bag", value=str(taken))])[0]
+    assert not result.successful and "exists already" in result.reason
+    assert not identification.set_parameters([Parameter("bag_storage", value="zip")])[0].successful
+    bag = tmp_path / "live"
+    assert identification.set_parameters([Parameter("record_bag", value=str(bag))])[0].successful
+    fake = FakeStage(ros, identification)
+    fake.publish(np.linspace(-3.0, 3.0, 40))
+    wait_until(lambda: len(identification.outputs) == 40, 5.0, "40 recorded positions")
+    assert identification.set_parameters([Parameter("record_bag", value="")])[0].successful
+    from_bag, recorded = read_bag(bag, min_samples=10), identification.recording_snapshot(min_samples=10)
+    assert len(from_bag) == len(recorded) >= 30 and np.ptp(from_bag.input) > 5.0
+    for column in ("t", "input", "output"):
+        np.testing.assert_array_equal(getattr(from_bag, column), getattr(recorded, column))

@@ -71,6 +71,7 @@ IDENTIFICATION_PARAMS = [
     Param("push_timeout", 2.0, "wait for the compensator's parameter service [s]", 0.0, 60.0),
     Param("record_bag", "", "rosbag2 directory to record current_cmd and joint_states into; empty: none"),
     Param("bag_storage", "sqlite3", f"rosbag2 storage: {' or '.join(STORAGES)}"),
+    Param("bag_overwrite", False, "replace an existing record_bag directory (when the bag is finished)"),
     Param("excite_amplitude_start", 5.0, "identification signal amplitude at its start [A]", 0.0, 20.0),
     Param("excite_amplitude_end", 3.6, "identification signal amplitude at its end [A]", 0.0, 20.0),
     Param("excite_period", 250.0, "identification signal period [s of signal time]", 0.001, 1e6),
@@ -119,20 +120,22 @@ class BagThread:
     """A BagRecorder driven from one thread of its own (the sqlite3 storage must stay in the thread that
     opened it, while the executor calls back from several)."""
 
-    def __init__(self, path: Path, storage: str) -> None:
+    def __init__(self, path: Path, storage: str, overwrite: bool = False) -> None:
         self.path = path
+        if (path.exists() or path.is_symlink()) and not overwrite:
+            raise InputError(f"record_bag {path} exists already: choose another path or set bag_overwrite true")
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._opened = threading.Event()
         self._error: Exception | None = None
-        self._thread = threading.Thread(target=self._run, args=(storage,), name="bag-writer", daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(storage, overwrite), name="bag-writer", daemon=True)
         self._thread.start()
         self._opened.wait()
         if self._error is not None:
             raise self._error
 
-    def _run(self, storage: str) -> None:
+    def _run(self, storage: str, overwrite: bool) -> None:
         try:
-            recorder = BagRecorder.open(self.path, storage)
+            recorder = BagRecorder.open(self.path, storage, overwrite=overwrite)
         except Exception as error:  # noqa: BLE001 -- handed to the opening thread
             self._error = error if isinstance(error, InputError) else InputError(f"cannot record {self.path}: {error}")
             self._opened.set()
@@ -181,7 +184,8 @@ class IdentificationNode(Node):
         try:
             self.values = declare_all(self, IDENTIFICATION_PARAMS)
             self.check_storage(str(self.values["bag_storage"]))
-            self.open_bag(str(self.values["record_bag"]), str(self.values["bag_storage"]))
+            self.open_bag(str(self.values["record_bag"]), str(self.values["bag_storage"]),
+                          bool(self.values["bag_overwrite"]))
         except InputError as error:
             self.destroy_node()
             raise InputError(f"node 'identification': {error}") from None
@@ -216,17 +220,18 @@ class IdentificationNode(Node):
         if storage not in STORAGES:
             raise InputError(f"bag_storage must be one of {', '.join(STORAGES)}, got {storage!r}")
 
-    def open_bag(self, path: str, storage: str) -> None:
+    def open_bag(self, path: str, storage: str, overwrite: bool) -> None:
         """Start recording into a new rosbag2 directory (none for an empty path)."""
         if path:
-            self.recorder = BagThread(Path(path), storage)
+            self.recorder = BagThread(Path(path), storage, overwrite)
 
     def close_bag(self) -> None:
         """Finish the bag being recorded (renamed into place)."""
         recorder, self.recorder = self.recorder, None
         if recorder is not None:
             path = recorder.close()
-            self.get_logger().info(f"bag written: {path}")
+            if self.context.ok():
+                self.get_logger().info(f"bag written: {path}")
 
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         """Check changes; a new record_bag closes the current bag and starts the new one."""
@@ -235,7 +240,8 @@ class IdentificationNode(Node):
             self.check_storage(str(candidate["bag_storage"]))
             if candidate["record_bag"] != self.values["record_bag"]:
                 self.close_bag()
-                self.open_bag(str(candidate["record_bag"]), str(candidate["bag_storage"]))
+                self.open_bag(str(candidate["record_bag"]), str(candidate["bag_storage"]),
+                              bool(candidate["bag_overwrite"]))
         except (InputError, OSError) as error:
             return SetParametersResult(successful=False, reason=" ".join(str(error).split()))
         self.values = candidate
@@ -365,9 +371,13 @@ class IdentificationNode(Node):
 
     def snapshot(self) -> Series:
         """The recording so far as a checked Series (InputError when it cannot support a fit)."""
+        return self.recording_snapshot(int(self.values["min_samples"]))
+
+    def recording_snapshot(self, min_samples: int) -> Series:
+        """The recording so far, aligned as a bag of it would be, with at least min_samples samples."""
         with self._lock:
             inputs, outputs = list(self.inputs), list(self.outputs)
-        return recording_series(inputs, outputs, int(self.values["min_samples"]))
+        return recording_series(inputs, outputs, min_samples)
 
     def on_refit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the recording (in this executor worker thread) and answer with the JSON report."""
