@@ -624,3 +624,23 @@ def test_identification_record_bag_can_be_switched_while_running(ros, tmp_path):
     assert len(from_bag) == len(recorded) >= 30 and np.ptp(from_bag.input) > 5.0
     for column in ("t", "input", "output"):
         np.testing.assert_array_equal(getattr(from_bag, column), getattr(recorded, column))
+
+
+def test_compensator_pi_loop_settles_the_simulated_stage_on_sim_time(ros):
+    stage = stage_node(ros, rate_hz=100.0, time_scale=100.0, use_sim_time=True, command_timeout=5.0)
+    compensator = compensator_node(ros, feedback=True, rate_hz=100.0, use_sim_time=True)
+    probe = ros.probe()
+    positions = Listener(probe, JointState, "joint_states", STATE_SUBSCRIBE_QOS)
+    setpoint_pub = probe.create_publisher(Float64, "setpoint", COMMAND_QOS)
+    wait_until(lambda: compensator.count_publishers("setpoint") >= 1 and stage.count_publishers("current_cmd") >= 1,
+               5.0, "discovery")
+    target = 2e-4
+
+    def settled() -> bool:
+        recent = [message.position[0] for message in positions.messages[-20:]]
+        return len(recent) == 20 and abs(np.mean(recent) - target) < 5e-6 and np.ptp(recent) < 1e-5
+
+    setpoint_pub.publish(Float64(data=target))
+    wait_until(settled, 20.0, f"the stage to settle at {target} m")
+    assert stage.state.time_s > 50.0, "the loop ran on simulated time"
+    assert abs(compensator.integral_m) > 1e-6, "the integral corrected the feedforward model's error"

@@ -7,8 +7,9 @@ invertibility) and refused with the reason when bad. `~/reload` reads model_file
 model when the file is bad.
 
 Control law: target = setpoint + kp e + integral(ki e dt), e = setpoint - measured position [m] (feedback
-only; target = setpoint otherwise), current = inverse(target) within +-max_current. The integrator stops
-while the inverse saturates in the direction of the error (anti-windup). A command is published on each
+only; target = setpoint otherwise), current = inverse(target) within +-max_current. The integral runs on
+the node clock (simulated time with use_sim_time) and stops while the inverse saturates in the direction
+of the error (anti-windup). A command is published on each
 setpoint and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog).
 """
 
@@ -57,8 +58,8 @@ COMPENSATOR_PARAMS = [
     Param("inverse_method", "exact", f"inverse of the model: {' or '.join(METHODS)}"),
     Param("max_current", 5.0, "current limit [A]: the inverse searches within +-max_current", 0.001, 20.0),
     Param("feedback", False, "close a PI loop on the measured position from joint_states"),
-    Param("kp", 0.5, "proportional gain on the position error [m/m] (feedback mode)", 0.0, 100.0),
-    Param("ki", 5.0, "integral gain on the position error [1/s] (feedback mode)", 0.0, 10000.0),
+    Param("kp", 1.0, "proportional gain on the position error [m/m] (feedback mode)", 0.0, 100.0),
+    Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (feedback mode)", 0.0, 10000.0),
     Param("rate_hz", 50.0, "command republication and PI loop rate [Hz]", 0.1, 2000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
@@ -103,6 +104,7 @@ class CompensatorNode(Node):
         self.integral_m = 0.0
         self.command_a = 0.0
         self.clipped_count = 0
+        self._last_step = None
         self._last_warning: dict[str, object] = {}
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
@@ -187,9 +189,17 @@ class CompensatorNode(Node):
             if self.setpoint_m is None:
                 return
             if self.values["feedback"]:
-                self.publish_command(self.compute_command(self.period_s))
+                self.publish_command(self.compute_command(self.elapsed_s()))
             else:
                 self.publish_command(self.command_a)
+
+    def elapsed_s(self) -> float:
+        """Node-clock seconds since the previous PI step (simulated time with use_sim_time)."""
+        now = self.get_clock().now()
+        previous, self._last_step = self._last_step, now
+        if previous is None:
+            return self.period_s
+        return max((now - previous).nanoseconds * 1e-9, 0.0)
 
     def compute_command(self, dt_s: float) -> float:
         """Current [A] for the setpoint, integrating the position error over dt_s [s] in feedback mode."""
