@@ -87,9 +87,24 @@ def test_paper_procedure_identify_on_decaying_sine_validate_on_two_cosines():
     assert validation.rms_pct < 1.0
 
 
-def test_operator_count_is_chosen_from_the_data():
+def test_operator_count_is_chosen_from_the_data_with_progress_reported():
     _, u, y = identification_data(samples=1201)
-    assert fit_gpi(u, y).operators == OPERATORS
+    lines = []
+    result = fit_gpi(u, y, progress=lines.append)
+    assert result.operators == OPERATORS
+    assert "Operators chosen: 10" in result.message
+    assert lines and all(isinstance(line, str) for line in lines)
+    assert any("surveyed" in line for line in lines)
+
+
+def test_given_start_points_are_used():
+    _, u, y = identification_data(samples=801)
+    far = RAW_TRUTH.replace(a2=3.0, a6=3.0, a9=0.2e-3)
+    near = RAW_TRUTH.replace(a2=0.6, a11=1.2 / 0.06e-3)
+    result = fit_gpi(u, y, operators=OPERATORS, starts=[far, near])
+    assert np.max(relative_errors(result.parameters, TRUTH)) < 1e-6
+    with pytest.raises(InputError):
+        fit_gpi(u, y, operators=OPERATORS, starts=["a1"])
 
 
 def test_jacobian_matches_central_differences():

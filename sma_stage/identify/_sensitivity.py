@@ -36,8 +36,11 @@ def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states:
     low = np.empty(v.size)
     high = np.empty(v.size)
     envelopes(v, theta, low, high)
-    r = a9 * np.arange(operators).astype(np.float64)
-    w = np.exp(-a11 * r)
+    r = np.empty(operators)
+    w = np.empty(operators)
+    for i in range(operators):
+        r[i] = a9 * i
+        w[i] = np.exp(-a11 * r[i])
     side = np.zeros(operators, dtype=np.int8)
     held = np.zeros((operators, 4))
     lower_now = np.empty(4)
@@ -46,7 +49,8 @@ def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states:
     for k in range(v.size):
         _envelope_derivatives(v[k], theta[0], theta[1], theta[2], lower_now)
         _envelope_derivatives(v[k], theta[4], theta[5], theta[6], upper_now)
-        row[:] = 0.0
+        for j in range(SENSITIVITY_COLUMNS):
+            row[j] = 0.0
         total = 0.0
         for i in range(operators):
             z = states[i]
@@ -55,11 +59,13 @@ def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states:
             if z > high_edge:
                 z = high_edge
                 side[i] = _UPPER
-                held[i, :] = upper_now
+                for j in range(4):
+                    held[i, j] = upper_now[j]
             if low_edge > z:
                 z = low_edge
                 side[i] = _LOWER
-                held[i, :] = lower_now
+                for j in range(4):
+                    held[i, j] = lower_now[j]
             states[i] = z
             wz = w[i] * z
             total += wz

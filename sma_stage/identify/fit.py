@@ -405,19 +405,25 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     for count in counts:
         count_starts = finalists if reference is None else _carried(finalists, reference, count)
         fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress)
-    chosen = _choose_count({count: found.cost for count, (found, _) in fits.items()})
+    costs = {count: found.cost for count, (found, _) in fits.items()}
+    chosen = _choose_count(costs)
     found = fits[chosen][0]
     iterations += sum(spent for _, spent in fits.values())
-    return _result(u, y, matrix, chosen, found, iterations, time.perf_counter() - clock, output_unit)
+    note = found.message
+    if len(costs) > 1:
+        rms = ", ".join(f"{count}: {100 * math.sqrt(cost / u.size) / np.ptp(y):.4g}" for count, cost in costs.items())
+        note += f" Operators chosen: {chosen} (RMS % by count {rms})."
+    return _result(u, y, matrix, chosen, found, iterations, time.perf_counter() - clock, output_unit, note)
 
 
 def _choose_count(costs: dict[int, float]) -> int:
+    """The smallest count whose RMS error is within OPERATOR_MARGIN of the best."""
     best = min(costs.values())
     return min(count for count, cost in costs.items() if math.sqrt(cost) <= (1 + OPERATOR_MARGIN) * math.sqrt(best))
 
 
 def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, found: _Search,
-            iterations: int, seconds: float, unit: str) -> FitResult:
+            iterations: int, seconds: float, unit: str, message: str) -> FitResult:
     problem = _Projected(u, y, regressors, operators, found.a1)
     problem.fun(found.x)
     a10, coefficients = float(problem.coefficients[-1]), problem.coefficients[:-1].copy()
@@ -431,7 +437,7 @@ def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
         regressor_coefficients=coefficients, predicted=predicted, residual=residual,
         identification=error_metrics(y, predicted), iterations=iterations, seconds=seconds, cost=cost,
         parameter_count=len(FREE_NAMES) + 1 + regressors.shape[1], success=found.status > 0,
-        message=found.message, regressor_standard_errors=regressor_errors,
+        message=message, regressor_standard_errors=regressor_errors,
     )
 
 
