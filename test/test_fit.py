@@ -134,12 +134,17 @@ def test_regressors_recover_a_linear_drift_and_predict_applies_them():
         predict(result, u)
 
 
-def test_regressors_recover_an_offset_and_drift():
+def test_an_offset_column_is_flagged_as_confounded_with_the_envelope_offsets():
     t, u, y = identification_data()
     columns = np.column_stack([np.ones_like(t), t / 1000.0])
     result = fit_gpi(u, y + 0.1e-3 - 0.05e-3 * columns[:, 1], operators=OPERATORS, regressors=columns)
     assert result.identification.rms_pct < 1e-4
     assert result.regressor_coefficients[1] == pytest.approx(-0.05e-3, rel=1e-4)
+    assert math.isinf(result.regressor_standard_errors[0]) and np.isfinite(result.regressor_standard_errors[1])
+    assert math.isinf(result.standard_errors["a4"]) and math.isinf(result.standard_errors["a8"])
+    assert np.isfinite(result.standard_errors["a2"])
+    with pytest.raises(InputError, match="dependent"):
+        fit_gpi(u, y, operators=OPERATORS, regressors=np.column_stack([np.ones_like(t), 2 * np.ones_like(t)]))
 
 
 def test_information_criterion_follows_its_formula():

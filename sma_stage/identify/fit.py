@@ -37,6 +37,7 @@ SCREEN_SAMPLES = 3000
 SCREEN_MAX_ITERATIONS = 100
 TOLERANCE = 1e-10
 PROGRESS_INTERVAL_S = 1.0
+NULL_TOLERANCE = 1e-10  # singular values of the column-scaled Jacobian below this (relative) are blind spots
 FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11")  # searched; a1 held, a10 projected
 _FREE_COLUMNS = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # their columns among the sensitivities (a1..a9, a11)
 
@@ -144,6 +145,10 @@ def _check_regressors(regressors: np.ndarray | None, samples: int, columns: int 
         raise InputError(f"regressors have {matrix.shape[1]} columns, the fit has {columns}")
     if not np.all(np.isfinite(matrix)):
         raise InputError("regressors contain a non-finite value")
+    if columns is None and matrix.shape[1]:
+        singular = np.linalg.svd(matrix / np.maximum(np.linalg.norm(matrix, axis=0), 1e-300), compute_uv=False)
+        if singular[-1] <= 1e-10 * singular[0]:
+            raise InputError("regressor columns are linearly dependent (or one is all zeros)")
     return matrix
 
 
@@ -379,6 +384,10 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
             progress: Callable[[str], None] | None = None) -> FitResult:
     """Fit a1..a11 to input u [A] and output y [output_unit] (y ~ GPI(u) + regressors @ c).
 
+    regressors: (N, m) columns entering linearly (e.g. time for a drift), solved with a10 at every
+    step. A constant column duplicates a common shift of a4 and a8 (their standard errors and its own
+    come out infinite); leave it out unless the envelope offsets are held some other way.
+
     operators None: each of OPERATOR_CANDIDATES is fitted and the smallest count whose RMS error is
     within OPERATOR_MARGIN of the best is kept (every count has the same parameter count, so an
     information criterion would just take the best). initial: a warm start (no multi-start).
@@ -443,8 +452,9 @@ def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
 
 def _standard_errors(u: np.ndarray, params: GPIParameters, operators: int, regressors: np.ndarray,
                      cost: float) -> tuple[dict[str, float], np.ndarray]:
-    """sigma^2 (J^T J)^-1 in the normalised form: free a1..a9, a11 and c; a10 = 1 / sum exp(-a11 r_i)
-    follows from them (delta method)."""
+    """sigma^2 (J^T J)^-1, sigma^2 = SSR / (N - p), in the normalised form: free a1..a9, a11 and c;
+    a10 = 1 / sum exp(-a11 r_i) follows from them (delta method). Infinite where the data cannot tell
+    a parameter apart (e.g. a constant regressor column against a common shift of a4 and a8)."""
     _, jac = model_jacobian(u, params, operators)
     indices = np.arange(operators)
     weights = np.exp(-params.a11 * params.a9 * indices)
@@ -454,26 +464,26 @@ def _standard_errors(u: np.ndarray, params: GPIParameters, operators: int, regre
     a10_gradient[9] = params.a9 * (indices @ weights) / total**2
     free_jac = np.delete(jac, 9, axis=1) + np.outer(jac[:, 9], a10_gradient)
     design = np.column_stack([free_jac, regressors])
-    dof = u.size - design.shape[1]
-    covariance = _covariance(design, cost / max(dof, 1))
-    variances = np.diag(covariance)
+    columns = design.shape[1]
+    functions = np.vstack([np.eye(columns), np.r_[a10_gradient, np.zeros(columns - 10)]])
+    variances = _variances(design, cost / max(u.size - columns, 1), functions)
     free_names = [name for name in PARAMETER_NAMES if name != "a10"]
     errors = {name: float(np.sqrt(variances[k])) for k, name in enumerate(free_names)}
-    with np.errstate(invalid="ignore"):
-        a10_variance = a10_gradient @ covariance[:10, :10] @ a10_gradient
-    errors["a10"] = float(np.sqrt(a10_variance)) if np.isfinite(a10_variance) else math.inf
-    errors = {name: errors[name] for name in PARAMETER_NAMES}
-    return errors, np.sqrt(variances[10:])
+    errors["a10"] = float(np.sqrt(variances[-1]))
+    return {name: errors[name] for name in PARAMETER_NAMES}, np.sqrt(variances[10:-1])
 
 
-def _covariance(design: np.ndarray, sigma2: float) -> np.ndarray:
-    """sigma^2 (J^T J)^-1 from J's R factor, column-scaled; infinite where J is rank deficient."""
+def _variances(design: np.ndarray, sigma2: float, functions: np.ndarray) -> np.ndarray:
+    """sigma^2 g^T (J^T J)^+ g for each row g of functions (in J's column units), from J's R factor with
+    columns scaled to unit norm; infinite for a g that changes along a direction J does not see."""
     norms = np.linalg.norm(design, axis=0)
     norms[norms == 0.0] = 1.0
     rows = np.ascontiguousarray((design / norms).T)
     r = householder_r(rows, np.arange(rows.shape[0], dtype=np.int64))
     _, singular, vt = np.linalg.svd(r)
-    if singular[-1] <= 1e-13 * singular[0]:
-        return np.full((design.shape[1], design.shape[1]), np.inf)
-    inverse = (vt.T / singular**2) @ vt
-    return sigma2 * inverse / np.outer(norms, norms)
+    seen = singular > NULL_TOLERANCE * singular[0]
+    scaled = functions / norms
+    variances = sigma2 * np.sum((scaled @ vt[seen].T / singular[seen]) ** 2, axis=1)
+    unseen = np.max(np.abs(scaled @ vt[~seen].T), axis=1, initial=0.0)
+    variances[unseen > 1e-6 * np.linalg.norm(scaled, axis=1)] = np.inf
+    return variances
