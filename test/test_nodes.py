@@ -644,3 +644,20 @@ def test_compensator_pi_loop_settles_the_simulated_stage_on_sim_time(ros):
     wait_until(settled, 20.0, f"the stage to settle at {target} m")
     assert stage.state.time_s > 50.0, "the loop ran on simulated time"
     assert abs(compensator.integral_m) > 1e-6, "the integral corrected the feedforward model's error"
+
+
+def test_identification_excites_and_refits_on_sim_time(ros):
+    stage_node(ros, rate_hz=100.0, time_scale=TIME_SCALE, use_sim_time=True, command_timeout=5.0)
+    identification = identification_node(ros, use_sim_time=True, excite_period=250.0, excite_duration=300.0,
+                                         min_samples=60, push_timeout=0.1, operators=5)
+    probe = ros.probe()
+    wait_until(lambda: identification.count_publishers("joint_states") >= 1, 5.0, "discovery")
+    wait_until(lambda: identification.now_ns() > 0, 5.0, "/clock")
+    assert ros.call(probe, Trigger, "identification/excite").success
+    wait_until(lambda: not identification.exciting, 10.0, "the excitation to end on simulated time")
+    answer = refit_answer(ros, probe)
+    assert answer.success, answer.message
+    report = json.loads(answer.message)
+    assert report["samples"]["identification"] + report["samples"]["validation"] >= 60
+    t = identification.snapshot().t
+    assert 250.0 <= t[-1] - t[0] <= 330.0, "the recording spans the signal's simulated duration"
