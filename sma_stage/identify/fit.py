@@ -243,7 +243,7 @@ def _bounds(u: np.ndarray, y: np.ndarray, a1: float, operators: int) -> tuple[np
     gain = (1e-2 / half_range, 1e2 / half_range)
     offset = (middle - 100.0 * a1, middle + 100.0 * a1)
     a9_high = 10.0 * a1 / max(operators - 1, 1)
-    low = [gain[0], -shift, offset[0], 1e-2 * a1, gain[0], -shift, offset[0], 1e-8 * a1, -1.0 / a1]
+    low = [gain[0], -shift, offset[0], 1e-2 * a1, gain[0], -shift, offset[0], 1e-8 * a1, -20.0 / a1]
     high = [gain[1], shift, offset[1], 1e2 * a1, gain[1], shift, offset[1], a9_high, 1e3 / a1]
     return np.array(low), np.array(high)
 
@@ -277,10 +277,19 @@ def _search(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
     span = high - low
     x0 = np.clip(x0, low + 1e-9 * span, high - 1e-9 * span)
     problem = _Projected(u, y, regressors, operators, a1, progress)
-    solution = least_squares(problem.fun, x0, jac=problem.jac, bounds=(low, high), method="trf",
-                             x_scale="jac", ftol=TOLERANCE, xtol=TOLERANCE, gtol=TOLERANCE,
-                             max_nfev=max_iterations)
-    return _Search(solution.x, a1, 2.0 * float(solution.cost), int(solution.njev or solution.nfev),
+    free = np.ones(x0.size, dtype=bool)
+    if operators == 1:
+        free[7:] = False  # one operator: r_0 = 0 and p_0 = a10, so a9 and a11 do nothing
+
+    def full(z: np.ndarray) -> np.ndarray:
+        x = x0.copy()
+        x[free] = z
+        return x
+
+    solution = least_squares(lambda z: problem.fun(full(z)), x0[free], jac=lambda z: problem.jac(full(z))[:, free],
+                             bounds=(low[free], high[free]), method="trf", x_scale="jac", ftol=TOLERANCE,
+                             xtol=TOLERANCE, gtol=TOLERANCE, max_nfev=max_iterations)
+    return _Search(full(solution.x), a1, 2.0 * float(solution.cost), int(solution.njev or solution.nfev),
                    int(solution.status), str(solution.message))
 
 
