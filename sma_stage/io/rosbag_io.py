@@ -257,7 +257,9 @@ class BagRecorder:
     """Streams current commands [A] and stage positions [m] into a rosbag2 directory.
 
     Messages go to a hidden sibling directory; `close()` renames it onto `path`, so a reader never
-    sees a half-written bag. Thread-safe; the write methods return False once the recorder is closed.
+    sees a half-written bag. Calls are serialised by a lock, but with the sqlite3 storage every call must
+    come from the thread that opened the recorder (sqlite3's rule); the write methods return False once
+    the recorder is closed.
     """
 
     def __init__(
