@@ -1,0 +1,498 @@
+"""Candidate effects the plain GPI lacks, each a model with the GPI inside, fitted from the base fit.
+
+- `thermal_lag`: the hysteresis sees v with tau v' = u - v (the wire temperature follows the current
+  through first-order dynamics; the signed current is filtered, so tau is the one extra parameter).
+- `delay`: the hysteresis sees u(t - d) (dead time d, linear interpolation between samples).
+- `rate`: thresholds r_i(t) = a9 i (1 + c |du/dt|) (the weights keep their nominal p(a9 i)).
+- `drift`: y = GPI(u) + k (t - t0) [+ A (1 - exp(-(t - t0)/tau_c)) when the creep term earns its place].
+
+Every effect has `fit(t, u, y, base)` (at the base fit's operator count) and `recount(fit, t, u, y)`
+(the operator count chosen again, by fit_gpi's rule, for the model with the effect). Time t is in s
+(or samples for quasi-static data), u in A, y in the output unit (m). Filter and delay start at rest
+(the input held at its first sample before the record), operator states at zero, as in the model core.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+from scipy.optimize import least_squares, minimize_scalar
+
+from sma_stage.errors import InputError
+from sma_stage.identify.fit import OPERATOR_CANDIDATES, OPERATOR_MARGIN, FitResult, fit_gpi, predict
+from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.model.parameters import GPIParameters
+
+EFFECT_NAMES: tuple[str, ...] = ("thermal_lag", "delay", "rate", "drift")
+SEARCH_GRID_POINTS = 6
+LOG_TOLERANCE = 1e-3  # tolerance of the scalar searches on the log of the parameter (0.1 %)
+COARSE_LOG_TOLERANCE = 5e-2  # tolerance of the thorough stage of a search (5 %)
+LAG_RANGE_FRACTION = 0.1  # largest tau or delay, as a fraction of the record's duration
+MIN_LAG_SAMPLES = 0.02  # smallest tau or delay, in sample periods
+THOROUGH_STARTS = 2  # data-derived starts of the cold fit in a thorough evaluation
+NARROW_FACTOR = 1.1  # after a change of operator count, x is searched again within x / 1.1 .. 1.1 x
+RATE_GAIN_GRID = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)  # scanned c, times 1 / max |du/dt|
+RATE_GAIN_LIMIT = 100.0  # largest c, times 1 / max |du/dt|
+RATE_MAX_EVALUATIONS = 200
+CREEP_TAU_RANGE_FRACTION = (0.01, 1.0)  # creep time constant bounds, fractions of the duration
+
+Progress = Callable[[str], None] | None
+Predictor = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class EffectFit:
+    """A fitted candidate: its extra parameters (name -> value, units in the name), the GPI inside,
+    identification errors and the sum of squared residuals `cost` [output unit^2]."""
+
+    effect: str
+    parameters: dict[str, float]
+    gpi_parameters: GPIParameters
+    operators: int
+    identification: ErrorMetrics
+    cost: float
+    samples: int
+    parameter_count: int
+    seconds: float
+    predictor: Predictor = field(repr=False, compare=False)
+
+    def predict(self, t: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Model output [output unit] for another record (time t [s], input u [A])."""
+        t, u = check_record(t, u)
+        return self.predictor(t, u)
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion on the identification data: N ln(SSR/N) + k ln N."""
+        return information_criterion(self.cost, self.samples, self.parameter_count)
+
+
+def information_criterion(cost: float, samples: int, parameter_count: int) -> float:
+    """BIC for Gaussian errors: N ln(SSR/N) + k ln N (lower is better)."""
+    return samples * math.log(max(cost, np.finfo(float).tiny) / samples) + parameter_count * math.log(samples)
+
+
+def check_record(t: np.ndarray, u: np.ndarray, y: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Float copies of (t, u[, y]), refused unless 1-D, equally long, finite, and t increasing."""
+    arrays = [np.array(a, dtype=float).reshape(-1) for a in ((t, u) if y is None else (t, u, y))]
+    if len({a.size for a in arrays}) != 1 or arrays[0].size < 3:
+        raise InputError(f"t, u (and y) must be equally long with at least 3 samples, got {[a.size for a in arrays]}")
+    if not all(np.all(np.isfinite(a)) for a in arrays):
+        raise InputError("t, u and y must be finite")
+    if np.any(np.diff(arrays[0]) <= 0.0):
+        raise InputError("time must increase from sample to sample")
+    return tuple(arrays)
+
+
+# ---- transforms and the rate model --------------------------------------------------------------
+
+
+@numba.njit(cache=True, nogil=True)
+def _lag_recursion(t: np.ndarray, u: np.ndarray, tau: float, out: np.ndarray) -> None:
+    out[0] = u[0]
+    for k in range(1, t.size):
+        h = t[k] - t[k - 1]
+        slope = (u[k] - u[k - 1]) / h
+        out[k] = u[k] - slope * tau + (out[k - 1] - u[k - 1] + slope * tau) * math.exp(-h / tau)
+
+
+def lagged_input(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
+    """v with tau v' = u - v [A], exact for u linear between samples, starting at rest (v = u[0])."""
+    out = np.empty_like(u)
+    _lag_recursion(t, u, float(tau_s), out)
+    return out
+
+
+def delayed_input(t: np.ndarray, u: np.ndarray, delay_s: float) -> np.ndarray:
+    """u(t - d) [A], linear between samples, held at u[0] before the first sample."""
+    return np.interp(t - delay_s, t, u)
+
+
+def input_rate(t: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """|du/dt| [A/s] by second-order finite differences."""
+    return np.abs(np.gradient(u, t))
+
+
+def drift_regressors(t: np.ndarray, creep_tau_s: float | None) -> np.ndarray:
+    """Columns (t - t0) [s] and, with a creep time constant, 1 - exp(-(t - t0)/tau_c)."""
+    elapsed = t - t[0]
+    columns = [elapsed] if creep_tau_s is None else [elapsed, -np.expm1(-elapsed / creep_tau_s)]
+    return np.column_stack(columns)
+
+
+@numba.njit(cache=True, nogil=True)
+def _rate_output(u: np.ndarray, rate: np.ndarray, theta: np.ndarray, operators: int, gain: float,
+                 out: np.ndarray) -> None:
+    """GPI output with thresholds a9 i (1 + gain rate_k) and weights a10 exp(-a11 a9 i), states from 0."""
+    states = np.zeros(operators)
+    nominal = theta[8] * np.arange(operators)
+    weights = theta[9] * np.exp(-theta[10] * nominal)
+    for k in range(u.size):
+        low = theta[0] * math.tanh(theta[1] * u[k] + theta[2]) + theta[3]
+        high = theta[4] * math.tanh(theta[5] * u[k] + theta[6]) + theta[7]
+        stretch = 1.0 + gain * rate[k]
+        total = 0.0
+        for i in range(operators):
+            z = max(low - nominal[i] * stretch, min(high + nominal[i] * stretch, states[i]))
+            states[i] = z
+            total += weights[i] * z
+        out[k] = total
+
+
+def rate_forward(u: np.ndarray, rate: np.ndarray, params: GPIParameters, operators: int,
+                 gain_s_per_A: float) -> np.ndarray:
+    """GPI output [output unit] with thresholds a9 i (1 + c |du/dt|); rate is |du/dt| [A/s], c in s/A."""
+    out = np.empty(u.size)
+    _rate_output(np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(rate, dtype=float),
+                 params.as_array(), int(operators), float(gain_s_per_A), out)
+    return out
+
+
+# ---- fitting machinery ---------------------------------------------------------------------------
+
+
+def _fit_or_none(v: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIParameters | None, unit: str,
+                 regressors: np.ndarray | None = None, starts: int | None = None) -> FitResult | None:
+    """fit_gpi, or None where the data cannot be fitted (e.g. a delay so long that the output falls as
+    the input rises)."""
+    try:
+        return fit_gpi(v, y, operators=operators, initial=initial, output_unit=unit, regressors=regressors,
+                       starts=starts)
+    except InputError:
+        return None
+
+
+def _pick(fits: Sequence) -> object:
+    """fit_gpi's operator-count rule over fits of several counts (anything with .cost and .operators):
+    the smallest count whose RMS error is within OPERATOR_MARGIN of the best; of it, the lowest cost."""
+    found = [fit for fit in fits if fit is not None]
+    best = min(fit.cost for fit in found)
+    eligible = [fit for fit in found if math.sqrt(fit.cost) <= (1.0 + OPERATOR_MARGIN) * math.sqrt(best)]
+    count = min(fit.operators for fit in eligible)
+    return min((fit for fit in eligible if fit.operators == count), key=lambda fit: fit.cost)
+
+
+class _Refits:
+    """GPI fits (one operator count) on a transformed input u_of(x), x the effect parameter. Each is
+    warm-started from the fit at the nearest x so far (the optimum moves smoothly with x) and, when
+    thorough, also from fit_gpi's data-derived starts (a start far away can sit in the basin where the
+    plain GPI absorbed the effect); the lower cost is kept."""
+
+    def __init__(self, u_of: Callable[[float], np.ndarray], y: np.ndarray, base: FitResult) -> None:
+        self.u_of, self.y, self.base = u_of, y, base
+        self.fits: dict[float, FitResult | None] = {}
+
+    def fit(self, value: float, thorough: bool = False) -> FitResult | None:
+        """The best fit found at this x (None if it cannot be fitted)."""
+        if value not in self.fits or thorough:
+            tries = [self.fits.get(value), self._try(value, self._nearest(value).parameters)]
+            if thorough:
+                tries.append(self._try(value, None, THOROUGH_STARTS))
+            found = [fit for fit in tries if fit is not None]
+            self.fits[value] = min(found, key=lambda fit: fit.cost) if found else None
+        return self.fits[value]
+
+    def cost(self, log_value: float, thorough: bool = False) -> float:
+        """SSR of the fit at exp(log_value) (inf where it cannot be fitted)."""
+        result = self.fit(math.exp(log_value), thorough)
+        return math.inf if result is None else float(result.cost)
+
+    def _nearest(self, value: float) -> FitResult:
+        fitted = [(abs(math.log(key / value)), fit) for key, fit in self.fits.items() if fit is not None]
+        return min(fitted, key=lambda pair: pair[0])[1] if fitted else self.base
+
+    def _try(self, value: float, initial: GPIParameters | None, starts: int | None = None) -> FitResult | None:
+        return _fit_or_none(self.u_of(value), self.y, self.base.operators, initial,
+                            self.base.parameters.output_unit, starts=starts)
+
+
+def _scalar_search(cost: Callable[[float, bool], float], low: float, high: float, grid_points: int,
+                   thorough: bool = True) -> float:
+    """The log x in [log low, log high] of least cost(log x, thorough): a log-spaced grid, a bounded Brent
+    search between the best grid point's neighbours to COARSE_LOG_TOLERANCE, then a quick Brent search
+    (warm starts only) around it to LOG_TOLERANCE. The GPI fit has local minima, so a wide search needs
+    thorough evaluations: a local polish alone stops where the plain GPI absorbed the effect."""
+    grid = np.linspace(math.log(low), math.log(high), grid_points)
+    costs = [cost(x, thorough) for x in grid]
+    best = int(np.argmin(costs))
+    x, fun = _brent(lambda x: cost(x, thorough), grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)],
+                    COARSE_LOG_TOLERANCE if thorough else LOG_TOLERANCE)
+    if fun > costs[best]:
+        x, fun = grid[best], costs[best]
+    if thorough:
+        margin = 2.0 * COARSE_LOG_TOLERANCE
+        fine, fine_fun = _brent(lambda z: cost(z, False), max(x - margin, grid[0]), min(x + margin, grid[-1]),
+                                LOG_TOLERANCE)
+        if fine_fun < fun:
+            x = fine
+    return float(x)
+
+
+def _brent(cost: Callable[[float], float], left: float, right: float, tolerance: float) -> tuple[float, float]:
+    found = minimize_scalar(cost, bounds=(left, right), method="bounded", options={"xatol": tolerance})
+    return float(found.x), float(found.fun)
+
+
+def _finish(effect: str, values: dict[str, float], gpi: GPIParameters, operators: int, y: np.ndarray,
+            predicted: np.ndarray, parameter_count: int, started: float, predictor: Predictor) -> EffectFit:
+    residual = y - predicted
+    return EffectFit(
+        effect=effect, parameters=values, gpi_parameters=gpi, operators=int(operators),
+        identification=error_metrics(y, predicted), cost=float(residual @ residual), samples=int(y.size),
+        parameter_count=int(parameter_count), seconds=time.perf_counter() - started, predictor=predictor,
+    )
+
+
+def _report(progress: Progress, message: str) -> None:
+    if progress is not None:
+        progress(message)
+
+
+# ---- the effects ---------------------------------------------------------------------------------
+
+
+class Effect:
+    """A candidate effect: `fit` from the base GPI fit (its operator count), `recount` to choose the
+    operator count again for the model with the effect."""
+
+    name = ""
+
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+            progress: Progress = None) -> EffectFit:
+        raise NotImplementedError
+
+    def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                progress: Progress = None) -> EffectFit:
+        raise NotImplementedError
+
+
+class InputTransformEffect(Effect):
+    """The GPI driven by a transformed input transform(t, u, x), x [s] found by a bounded search over
+    log x with the GPI refitted at every x."""
+
+    def __init__(self, name: str, parameter: str, transform: Callable[[np.ndarray, np.ndarray, float], np.ndarray]):
+        self.name, self.parameter, self.transform = name, parameter, transform
+
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+            progress: Progress = None) -> EffectFit:
+        started = time.perf_counter()
+        fits = _Refits(lambda x: self.transform(t, u, x), y, base)
+        value = math.exp(_scalar_search(fits.cost, *_lag_range(t), SEARCH_GRID_POINTS))
+        gpi = fits.fit(value, thorough=True)
+        return self._finish(value, gpi, y, base.parameter_count + 1, started, progress)
+
+    def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                progress: Progress = None) -> EffectFit:
+        started = time.perf_counter()
+        value = fit.parameters[self.parameter]
+        counted = _fit_or_none(self.transform(t, u, value), y, None, None, fit.gpi_parameters.output_unit,
+                               starts=THOROUGH_STARTS)
+        if counted is None or _pick([fit, counted]) is fit:
+            return fit
+        fits = _Refits(lambda x: self.transform(t, u, x), y, counted)
+        fits.fits[value] = counted
+        low, high = _lag_range(t)
+        narrow = (max(value / NARROW_FACTOR, low), min(value * NARROW_FACTOR, high))
+        value = math.exp(_scalar_search(fits.cost, *narrow, 3, thorough=False))
+        return self._finish(value, fits.fit(value, thorough=True), y, fit.parameter_count, started, progress)
+
+    def _finish(self, value: float, gpi: FitResult, y: np.ndarray, parameter_count: int, started: float,
+                progress: Progress) -> EffectFit:
+        _report(progress, f"{self.name}: {self.parameter} = {value:.4g}, {gpi.operators} operators")
+        return _finish(self.name, {self.parameter: value}, gpi.parameters, gpi.operators, y, gpi.predicted,
+                       parameter_count, started, lambda tv, uv: predict(gpi, self.transform(tv, uv, value)))
+
+
+def _lag_range(t: np.ndarray) -> tuple[float, float]:
+    """Bounds [s] of a lag or delay search: MIN_LAG_SAMPLES of a sample period to a tenth of the record."""
+    step = float(np.median(np.diff(t)))
+    return MIN_LAG_SAMPLES * step, max(LAG_RANGE_FRACTION * float(t[-1] - t[0]), step)
+
+
+class DriftEffect(Effect):
+    """GPI plus a linear drift k (t - t0) [m/s], solved linearly inside the fit; a creep term
+    A (1 - exp(-(t - t0)/tau_c)) [m] joins when it lowers the BIC (tau_c searched with the GPI held)."""
+
+    name = "drift"
+
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+            progress: Progress = None) -> EffectFit:
+        started = time.perf_counter()
+        return self._fit_at(t, u, y, base.parameters, base.operators, base.parameter_count, started, progress)
+
+    def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                progress: Progress = None) -> EffectFit:
+        """The count chosen by fit_gpi's rule with the linear drift; the creep decided again at it."""
+        started = time.perf_counter()
+        counted = _fit_or_none(u, y, None, None, fit.gpi_parameters.output_unit, drift_regressors(t, None),
+                               THOROUGH_STARTS)
+        if counted is None or counted.operators == fit.operators:
+            return fit
+        plain_count = fit.parameter_count - len(fit.parameters)
+        refit = self._fit_at(t, u, y, counted.parameters, counted.operators, plain_count, started, progress)
+        return refit if _pick([fit, refit]) is refit else fit
+
+    def _fit_at(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, start: GPIParameters, count: int,
+                plain_count: int, started: float, progress: Progress) -> EffectFit:
+        """Linear drift, then linear drift and creep, at one operator count; the lower BIC is kept."""
+        unit = start.output_unit
+        linear = self._refit(u, y, count, start, unit, drift_regressors(t, None))
+        tau_c = _creep_time_constant(t, y, linear)
+        creep = self._refit(u, y, count, linear.parameters, unit, drift_regressors(t, tau_c))
+        samples, k = y.size, plain_count
+        if information_criterion(creep.cost, samples, k + 3) < information_criterion(linear.cost, samples, k + 1):
+            return self._finish(t, y, creep, tau_c, k + 3, started, progress)
+        return self._finish(t, y, linear, None, k + 1, started, progress)
+
+    @staticmethod
+    def _refit(u: np.ndarray, y: np.ndarray, count: int, start: GPIParameters, unit: str,
+               columns: np.ndarray) -> FitResult:
+        """The better of a warm-started and a cold fit (the warm one may keep what the plain GPI absorbed)."""
+        return min((fit for fit in (_fit_or_none(u, y, count, start, unit, columns),
+                                    _fit_or_none(u, y, count, None, unit, columns, THOROUGH_STARTS))
+                    if fit is not None), key=lambda fit: fit.cost)
+
+    def _finish(self, t: np.ndarray, y: np.ndarray, gpi: FitResult, tau_c: float | None, parameter_count: int,
+                started: float, progress: Progress) -> EffectFit:
+        coefficients = gpi.regressor_coefficients
+        values = {"drift_m_per_s": float(coefficients[0])}
+        if tau_c is not None:
+            values.update({"creep_m": float(coefficients[1]), "creep_tau_s": tau_c})
+        _report(progress, "drift: " + ", ".join(f"{name} = {value:.4g}" for name, value in values.items()))
+        return _finish(self.name, values, gpi.parameters, gpi.operators, y, gpi.predicted, parameter_count,
+                       started, lambda tv, uv: predict(gpi, uv, regressors=drift_regressors(tv, tau_c)))
+
+
+def _creep_time_constant(t: np.ndarray, y: np.ndarray, linear: FitResult) -> float:
+    """tau_c [s] that best explains what the linear-drift fit leaves, with its GPI output held."""
+    gpi_part = linear.predicted - drift_regressors(t, None) @ linear.regressor_coefficients
+    duration = float(t[-1] - t[0])
+
+    def cost(log_tau: float, thorough: bool) -> float:
+        basis = np.column_stack([gpi_part, np.ones_like(t), drift_regressors(t, math.exp(log_tau))])
+        coefficients, *_ = np.linalg.lstsq(basis, y, rcond=None)
+        residual = y - basis @ coefficients
+        return float(residual @ residual)
+
+    low, high = (fraction * duration for fraction in CREEP_TAU_RANGE_FRACTION)
+    return math.exp(_scalar_search(cost, low, high, SEARCH_GRID_POINTS))
+
+
+@dataclass(frozen=True)
+class _RateFit:
+    params: GPIParameters
+    operators: int
+    gain: float
+    cost: float
+
+
+class RateEffect(Effect):
+    """GPI with rate-dependent thresholds a9 i (1 + c |du/dt|): c [s/A] scanned with the GPI held, then
+    a1..a11 and c refitted together (trust-region reflective, a10 solved linearly inside)."""
+
+    name = "rate"
+
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+            progress: Progress = None) -> EffectFit:
+        started = time.perf_counter()
+        found = _rate_fit(u, input_rate(t, u), y, base.parameters, base.operators)
+        return self._finish(found, t, u, y, base.parameter_count + 1, started, progress)
+
+    def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                progress: Progress = None) -> EffectFit:
+        """Refit from a plain GPI fit of every other candidate operator count; keep the rule's choice."""
+        started = time.perf_counter()
+        rate, unit = input_rate(t, u), fit.gpi_parameters.output_unit
+        fits: list = [fit]
+        for count in OPERATOR_CANDIDATES:
+            start = None if count == fit.operators else _fit_or_none(u, y, count, None, unit, None, THOROUGH_STARTS)
+            if start is not None:
+                fits.append(_rate_fit(u, rate, y, start.parameters, count))
+        chosen = _pick(fits)
+        if chosen is fit:
+            return fit
+        return self._finish(chosen, t, u, y, fit.parameter_count, started, progress)
+
+    def _finish(self, found: _RateFit, t: np.ndarray, u: np.ndarray, y: np.ndarray, parameter_count: int,
+                started: float, progress: Progress) -> EffectFit:
+        params, operators, gain = found.params, found.operators, found.gain
+        _report(progress, f"rate: rate_gain_s_per_A = {gain:.4g}, {operators} operators")
+        return _finish(self.name, {"rate_gain_s_per_A": gain}, params, operators, y,
+                       rate_forward(u, input_rate(t, u), params, operators, gain), parameter_count, started,
+                       lambda tv, uv: rate_forward(uv, input_rate(tv, uv), params, operators, gain))
+
+
+def _rate_fit(u: np.ndarray, rate: np.ndarray, y: np.ndarray, start_params: GPIParameters,
+              operators: int) -> _RateFit:
+    """The rate model fitted from a GPI start: a scan of c with the GPI held, then everything together."""
+    scale = 1.0 / max(float(np.max(rate)), np.finfo(float).tiny)
+    start = start_params.as_array()
+    grid = [factor * scale for factor in RATE_GAIN_GRID]
+    scan = [_rate_projection(start, gain, u, rate, y, operators)[1] for gain in grid]
+    free = [k for k in range(11) if k != 9]
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        values = start.copy()
+        values[free] = x[:-1]
+        return _rate_projection(values, x[-1], u, rate, y, operators)[2]
+
+    lower = np.full(len(free) + 1, -np.inf)
+    upper = np.full(len(free) + 1, np.inf)
+    lower[8], lower[-1], upper[-1] = 1e-8 * abs(start[8]), 0.0, RATE_GAIN_LIMIT * scale
+    x0 = np.clip(np.append(start[free], grid[int(np.argmin(scan))]), lower, upper)
+    solution = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac", method="trf",
+                             max_nfev=RATE_MAX_EVALUATIONS)
+    values = start.copy()
+    values[free] = solution.x[:-1]
+    gain = float(solution.x[-1])
+    values[9], cost, _ = _rate_projection(values, gain, u, rate, y, operators)
+    return _RateFit(GPIParameters.from_array(values, start_params.output_unit), operators, gain, cost)
+
+
+def _rate_projection(values: np.ndarray, gain: float, u: np.ndarray, rate: np.ndarray, y: np.ndarray,
+                     operators: int) -> tuple[float, float, np.ndarray]:
+    """(best a10 >= 0, SSR, residual in output spans) for the rate model with a1..a9, a11 from values."""
+    theta = values.copy()
+    theta[9] = 1.0
+    shape = np.empty(u.size)
+    _rate_output(u, rate, theta, operators, float(gain), shape)
+    norm = float(shape @ shape)
+    a10 = max(float(shape @ y) / norm, 0.0) if norm > 0.0 else 0.0
+    residual = a10 * shape - y
+    return a10, float(residual @ residual), residual / max(float(np.ptp(y)), np.finfo(float).tiny)
+
+
+EFFECTS: dict[str, Effect] = {
+    "thermal_lag": InputTransformEffect("thermal_lag", "tau_s", lagged_input),
+    "delay": InputTransformEffect("delay", "delay_s", delayed_input),
+    "rate": RateEffect(),
+    "drift": DriftEffect(),
+}
+
+
+def fit_effect(name: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+               progress: Progress = None) -> EffectFit:
+    """Fit the candidate effect `name` on (t [s], u [A], y) from the base GPI fit (its operator count)."""
+    if name not in EFFECTS:
+        raise InputError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+    t, u, y = check_record(t, u, y)
+    return EFFECTS[name].fit(t, u, y, base, progress)
+
+
+def recount_effect(fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                   progress: Progress = None) -> EffectFit:
+    """The fitted effect with its operator count chosen again (fit_gpi's rule); fit itself if unchanged."""
+    t, u, y = check_record(t, u, y)
+    return EFFECTS[fit.effect].recount(fit, t, u, y, progress)
+
+
+def no_effect(t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult) -> EffectFit:
+    """The plain GPI in the same form as the candidates (no extra parameter)."""
+    t, u, y = check_record(t, u, y)
+    return _finish("none", {}, base.parameters, base.operators, y, base.predicted, base.parameter_count,
+                   time.perf_counter(), lambda tv, uv: predict(base, uv))

@@ -1,0 +1,130 @@
+"""Test-only data: a GPI plant with one effect injected, written independently of sma_stage.identify.effects.
+
+The plant is simulated on a time grid OVERSAMPLING times finer than the recorded one (as a
+continuous plant would run) and then sampled; Gaussian noise of known sigma [m] is added to the
+recorded output. Nothing here is shared with the identification, which is never told the effect.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import signal as sps
+
+from sma_stage.model import GPIParameters
+from sma_stage.signals import paper_identification_signal, paper_validation_signal
+
+TRUE_PARAMETERS = GPIParameters(
+    a1=0.70e-3, a2=0.55, a3=0.15, a4=0.54e-3,
+    a5=0.68e-3, a6=0.65, a7=-0.2, a8=0.78e-3,
+    a9=60e-6, a10=0.22, a11=2.5e3,
+)
+TRUE_OPERATORS = 10
+SAMPLE_PERIOD_S = 1.0
+DURATION_S = 1000.0
+OVERSAMPLING = 10
+NOISE_SIGMA_M = 2e-6
+
+DEFAULT_EFFECTS: dict[str, dict[str, float]] = {
+    "none": {},
+    "thermal_lag": {"tau_s": 20.0},
+    "delay": {"delay_s": 5.0},
+    "rate": {"rate_gain_s_per_A": 5.0},
+    "drift": {"drift_m_per_s": 5e-8},
+}
+
+
+@dataclass(frozen=True)
+class Record:
+    """One recorded experiment: time [s], current [A], noisy position [m], noise-free position [m]."""
+
+    t: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    clean: np.ndarray
+    noise_sigma_m: float
+
+    @property
+    def noise_floor_pct(self) -> float:
+        """The noise sigma in % of the recorded output's span: the best RMS error any model can reach."""
+        return 100.0 * self.noise_sigma_m / float(np.ptp(self.y))
+
+
+@dataclass(frozen=True)
+class Case:
+    """Identification and validation records of one plant, and the injected effect (the truth)."""
+
+    effect: str
+    truth: dict[str, float]
+    identification: Record
+    validation: Record
+    extra: dict = field(default_factory=dict)
+
+
+def play_outputs(v: np.ndarray, thresholds: np.ndarray, params: GPIParameters = TRUE_PARAMETERS) -> np.ndarray:
+    """y_k = sum_i p_i z_ik with z_ik = max(gl(v_k) - r_ik, min(gr(v_k) + r_ik, z_i,k-1)), z starting at 0.
+
+    thresholds is (samples, operators) [m]; the weights p_i use the nominal thresholds a9 i.
+    """
+    low = params.envelope_left(v)
+    high = params.envelope_right(v)
+    weights = params.densities(thresholds.shape[1])
+    z = np.zeros(thresholds.shape[1])
+    out = np.empty(v.size)
+    for k in range(v.size):
+        z = np.maximum(low[k] - thresholds[k], np.minimum(high[k] + thresholds[k], z))
+        out[k] = weights @ z
+    return out
+
+
+def first_order_lag(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
+    """v' = (u - v)/tau on a fine uniform grid (bilinear transform), starting at rest at v = u[0]."""
+    fs = 1.0 / (t[1] - t[0])
+    b, a = sps.bilinear([1.0], [tau_s, 1.0], fs)
+    filtered, _ = sps.lfilter(b, a, u, zi=sps.lfilter_zi(b, a) * u[0])
+    return filtered
+
+
+def plant_output(t: np.ndarray, u: np.ndarray, effect: str, values: dict[str, float]) -> np.ndarray:
+    """The noise-free position [m] of the plant with the effect, on the fine grid t."""
+    nominal = TRUE_PARAMETERS.thresholds(TRUE_OPERATORS)
+    thresholds = np.broadcast_to(nominal, (t.size, TRUE_OPERATORS))
+    drive = u
+    if effect == "thermal_lag":
+        drive = first_order_lag(t, u, values["tau_s"])
+    elif effect == "delay":
+        drive = np.interp(t - values["delay_s"], t, u)
+    elif effect == "rate":
+        rate = np.abs(np.gradient(u, t))
+        thresholds = nominal[None, :] * (1.0 + values["rate_gain_s_per_A"] * rate[:, None])
+    elif effect not in ("none", "drift"):
+        raise ValueError(f"unknown effect {effect!r}")
+    output = play_outputs(drive, np.ascontiguousarray(thresholds))
+    if effect == "drift":
+        output = output + values.get("drift_m_per_s", 0.0) * (t - t[0])
+        output = output + values.get("creep_m", 0.0) * (1.0 - np.exp(-(t - t[0]) / values.get("creep_tau_s", 1.0)))
+    return output
+
+
+def record(input_signal, effect: str, values: dict[str, float], rng: np.random.Generator,
+           noise_sigma_m: float, sample_period_s: float, duration_s: float) -> Record:
+    """Simulate finely, sample every sample_period_s, add noise."""
+    fine_t = np.arange(0.0, duration_s + 1e-9, sample_period_s / OVERSAMPLING)
+    fine_u = input_signal(fine_t)
+    fine_y = plant_output(fine_t, fine_u, effect, values)
+    pick = slice(None, None, OVERSAMPLING)
+    clean = fine_y[pick]
+    noisy = clean + rng.normal(0.0, noise_sigma_m, clean.size)
+    return Record(fine_t[pick].copy(), fine_u[pick].copy(), noisy, clean, noise_sigma_m)
+
+
+def make_case(effect: str, seed: int = 0, noise_sigma_m: float = NOISE_SIGMA_M,
+              sample_period_s: float = SAMPLE_PERIOD_S, duration_s: float = DURATION_S,
+              **values: float) -> Case:
+    """Identification (paper's decaying sine) and validation (paper's two cosines) records with the effect."""
+    truth = dict(DEFAULT_EFFECTS[effect]) if not values else dict(values)
+    rng = np.random.default_rng(seed)
+    ident = record(paper_identification_signal, effect, truth, rng, noise_sigma_m, sample_period_s, duration_s)
+    valid = record(paper_validation_signal, effect, truth, rng, noise_sigma_m, sample_period_s, duration_s)
+    return Case(effect, truth, ident, valid)

@@ -1,0 +1,192 @@
+"""Closing the loop: residual tests, candidate effects, and the diagnosis on GPI-plant data with one
+effect injected and not declared (test/synthetic.py simulates it independently of effects.py)."""
+
+import functools
+import json
+
+import numpy as np
+import pytest
+from synthetic import TRUE_OPERATORS, TRUE_PARAMETERS, make_case
+
+from sma_stage.errors import InputError
+from sma_stage.identify.diagnosis import diagnose
+from sma_stage.identify.effects import EFFECT_NAMES, delayed_input, input_rate, lagged_input, rate_forward
+from sma_stage.identify.residual_tests import TEST_NAMES, residual_tests
+from sma_stage.model import forward
+
+FLOOR_FACTOR = 1.5
+SEED = 7
+# Relative accuracy of the recovered effect parameter (the identification never sees the truth).
+PARAMETER_TOLERANCE = 0.05
+
+
+@functools.cache
+def diagnosed(effect: str):
+    """(case, diagnosis) for the synthetic plant with `effect` injected; computed once per session."""
+    case = make_case(effect, seed=SEED)
+    ident, valid = case.identification, case.validation
+    return case, diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y))
+
+
+# ---- the diagnosis ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("effect", EFFECT_NAMES)
+def test_diagnose_names_the_injected_effect_and_reaches_the_noise_floor(effect):
+    case, result = diagnosed(effect)
+    floor = case.validation.noise_floor_pct
+    assert result.effect == effect, [(c.effect, c.validation.rms_pct, c.reason) for c in result.candidates]
+    assert result.before.rms_pct > 3.0 * floor  # the effect mattered to the plain GPI
+    assert result.after.rms_pct <= FLOOR_FACTOR * floor
+    for name, truth in case.truth.items():
+        assert result.parameters[name] == pytest.approx(truth, rel=PARAMETER_TOLERANCE)
+
+
+def test_diagnose_answers_none_when_the_gpi_suffices():
+    case, result = diagnosed("none")
+    assert result.effect == "none", [(c.effect, c.delta_bic, c.validation.rms_pct) for c in result.candidates]
+    assert result.parameters == {}
+    assert result.after == result.before
+    assert result.before.rms_pct <= FLOOR_FACTOR * case.validation.noise_floor_pct
+    assert {c.effect for c in result.candidates} == set(EFFECT_NAMES)
+    assert not any(c.accepted for c in result.candidates)
+
+
+def test_diagnosis_block_follows_the_json_contract():
+    _, result = diagnosed("delay")
+    block = json.loads(json.dumps(result.to_dict()))
+    assert block["effect"] == "delay"
+    assert set(block["evidence"]) == set(TEST_NAMES)
+    assert all(isinstance(text, str) and ("band" in text or "chi2" in text) for text in block["evidence"].values())
+    assert set(block["parameters"]) == {"delay_s"}
+    for side in ("before", "after"):
+        assert set(block[side]["validation"]) == {"rms_pct", "max_pct"}
+    assert block["after"]["validation"]["rms_pct"] < block["before"]["validation"]["rms_pct"]
+    assert [c["effect"] for c in block["candidates"]] == [c.effect for c in result.candidates]
+    assert sum(c["accepted"] for c in block["candidates"]) >= 1
+
+
+def test_diagnosis_shows_the_residual_whitened_by_the_effect():
+    _, result = diagnosed("thermal_lag")
+    assert not result.tests_before.checks["whiteness"].passed
+    after, before = result.tests_after.checks["whiteness"], result.tests_before.checks["whiteness"]
+    assert after.value < 0.05 * before.value
+
+
+def test_diagnose_refuses_bad_records_with_one_line():
+    case = make_case("none", seed=SEED, duration_s=100.0)
+    ident, valid = case.identification, case.validation
+    bad_y = valid.y.copy()
+    bad_y[5] = np.nan
+    with pytest.raises(InputError, match="validation"):
+        diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, bad_y))
+    with pytest.raises(InputError, match="identification"):
+        diagnose((ident.t, ident.u[:-1], ident.y), (valid.t, valid.u, valid.y))
+    with pytest.raises(InputError):
+        diagnose("not a record", (valid.t, valid.u, valid.y))
+
+
+# ---- the residual tests ---------------------------------------------------------------------------
+
+
+def smooth_input(n, seed, dt=1.0):
+    """A band-limited random current [A] (a few minutes' correlation time) sampled every dt seconds."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt
+    frequencies = rng.uniform(0.002, 0.02, 6)
+    phases = rng.uniform(0.0, 2.0 * np.pi, 6)
+    return t, np.sum(np.sin(2.0 * np.pi * np.outer(t, frequencies) + phases), axis=1)
+
+
+def test_white_residual_passes_whiteness_at_its_nominal_rate():
+    rng = np.random.default_rng(1)
+    t, u = smooth_input(500, seed=1)
+    failures = [not residual_tests(rng.normal(0.0, 1e-6, t.size), u, t).checks["whiteness"].passed
+                for _ in range(200)]
+    assert 0.01 <= np.mean(failures) <= 0.10  # 95 % band: about 5 % false alarms
+
+
+def test_white_residual_passes_every_test():
+    t, u = smooth_input(1000, seed=2)
+    passes = [residual_tests(np.random.default_rng(seed).normal(0.0, 1e-6, t.size), u, t).passed
+              for seed in range(40)]
+    assert np.mean(passes) >= 0.65  # five tests at 95 % (the lagged one Bonferroni-widened): ~80 % pass all
+
+
+@pytest.mark.parametrize("lag_samples", [7, -4])
+def test_lagged_copy_of_the_input_is_found_at_its_lag(lag_samples):
+    dt = 0.5
+    t, u = smooth_input(1200, seed=3, dt=dt)
+    e = 1e-6 * np.roll(u, lag_samples) + np.random.default_rng(4).normal(0.0, 1e-7, t.size)
+    checks = residual_tests(e[50:-50], u[50:-50], t[50:-50]).checks
+    assert not checks["lagged_input"].passed
+    assert checks["lagged_input"].lag_s == pytest.approx(lag_samples * dt)
+    assert checks["lagged_input"].value > 0.9
+
+
+def test_trend_and_rate_are_seen_by_their_own_tests():
+    t, u = smooth_input(1000, seed=5)
+    noise = np.random.default_rng(6).normal(0.0, 1e-6, t.size)
+    trend = residual_tests(noise + 2e-9 * t, u, t).checks
+    rate = residual_tests(noise - 2e-4 * np.gradient(u, t), u, t).checks
+    assert not trend["time"].passed and trend["time"].value > 0
+    assert not rate["input_rate"].passed and rate["input_rate"].value < 0
+    assert trend["time"].ratio > trend["input_rate"].ratio
+    assert rate["input_rate"].ratio > rate["time"].ratio
+
+
+def test_residual_tests_refuse_bad_input():
+    t, u = smooth_input(100, seed=0)
+    with pytest.raises(InputError):
+        residual_tests(np.zeros(99), u, t)
+    with pytest.raises(InputError):
+        residual_tests(np.full(100, np.nan), u, t)
+    with pytest.raises(InputError):
+        residual_tests(np.zeros(100), u, t[::-1])
+
+
+# ---- the effect models ----------------------------------------------------------------------------
+
+
+def test_lagged_input_solves_the_first_order_lag():
+    tau, omega = 20.0, 2.0 * np.pi / 250.0
+    t = np.linspace(0.0, 600.0, 1201)
+    u = np.sin(omega * t)
+    phase = omega * tau
+    exact = (np.sin(omega * t) - phase * np.cos(omega * t) + phase * np.exp(-t / tau)) / (1.0 + phase**2)
+    assert np.max(np.abs(lagged_input(t, u, tau) - exact)) < 1e-4
+
+
+def test_delayed_input_is_exact_on_a_ramp_and_holds_the_first_sample():
+    t = np.arange(0.0, 50.0, 0.5)
+    u = 0.2 * t + 1.0
+    shifted = delayed_input(t, u, 3.3)
+    late = t >= 3.3
+    assert np.allclose(shifted[late], 0.2 * (t[late] - 3.3) + 1.0)
+    assert np.all(shifted[~late] == u[0])
+
+
+def test_rate_model_without_rate_gain_is_the_gpi():
+    t = np.arange(0.0, 500.0, 1.0)
+    u = 4.0 * np.sin(2.0 * np.pi * t / 250.0)
+    plain = forward(u, TRUE_PARAMETERS, TRUE_OPERATORS)
+    assert np.allclose(rate_forward(u, input_rate(t, u), TRUE_PARAMETERS, TRUE_OPERATORS, 0.0), plain,
+                       rtol=0, atol=1e-12)
+    wider = rate_forward(u, input_rate(t, u), TRUE_PARAMETERS, TRUE_OPERATORS, 5.0)
+    rising = np.gradient(u) > 0
+    assert np.mean(wider[rising] - plain[rising]) < 0 < np.mean(wider[~rising] - plain[~rising])
+
+
+@pytest.mark.parametrize("effect", ["none", "thermal_lag", "delay", "rate"])
+def test_effect_models_reproduce_the_independent_plant_simulation(effect):
+    """With the true parameters, the effect models (sampled at 1 Hz) match the plant simulated 10x finer
+    by test/synthetic.py to well under the noise: the test data are fair to the identification."""
+    case = make_case(effect, seed=0)
+    value = next(iter(case.truth.values()), 0.0)
+    for record in (case.identification, case.validation):
+        t, u = record.t, record.u
+        drive = {"thermal_lag": lagged_input(t, u, value) if effect == "thermal_lag" else u,
+                 "delay": delayed_input(t, u, value)}.get(effect, u)
+        model = (rate_forward(u, input_rate(t, u), TRUE_PARAMETERS, TRUE_OPERATORS, value) if effect == "rate"
+                 else forward(drive, TRUE_PARAMETERS, TRUE_OPERATORS))
+        assert np.sqrt(np.mean((model - record.clean) ** 2)) < 0.5 * record.noise_sigma_m
