@@ -38,7 +38,10 @@ SCREEN_MAX_ITERATIONS = 100
 TOLERANCE = 1e-10
 PROGRESS_INTERVAL_S = 1.0
 NULL_TOLERANCE = 1e-10  # singular values of the column-scaled Jacobian below this (relative) are blind spots
-FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11")  # searched; a1 held, a10 projected
+# Searched: a2..a9 and the density decay per operator a11*a9 (bounded, so that no operator's weight
+# runs away from the others); a1 is held (the scale symmetry) and a10 projected.
+FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11*a9")
+DECAY_LIMITS = (-3.0, 30.0)  # bounds of a11 * largest threshold: the last weight is e^3 .. e^-30 of the first
 _FREE_COLUMNS = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # their columns among the sensitivities (a1..a9, a11)
 
 
@@ -187,9 +190,6 @@ class _Projected:
         self._x: np.ndarray | None = None
         self.evaluations = 0
 
-    def theta(self, x: np.ndarray, a10: float = 1.0) -> np.ndarray:
-        """a1..a11 from the free parameters."""
-        return np.concatenate([[self.a1], x[:8], [a10, x[8]]])
 
     def _evaluate(self, x: np.ndarray) -> None:
         if self._x is not None and np.array_equal(x, self._x):
@@ -198,7 +198,10 @@ class _Projected:
         m = self.regressors.shape[1]
         rows = self._rows
         rows[:m] = self.regressors.T
-        _sensitivities(self.v, self.theta(x), self.operators, out=rows[m:m + 1 + SENSITIVITY_COLUMNS])
+        _sensitivities(self.v, _theta(self.a1, x), self.operators, out=rows[m:m + 1 + SENSITIVITY_COLUMNS])
+        a9_row, a11_row = m + 9, m + 10  # to d/d(a9) at fixed a11*a9 and d/d(a11*a9)
+        rows[a9_row] -= rows[a11_row] * (x[8] / x[7] ** 2)
+        rows[a11_row] /= x[7]
         rows[-1] = self.y
         r = householder_r(rows, self._order)
         linear = m + 1
@@ -221,6 +224,11 @@ class _Projected:
         return self.jacobian
 
 
+def _theta(a1: float, x: np.ndarray, a10: float = 1.0) -> np.ndarray:
+    """a1..a11 from the held a1, the searched (a2..a9, a11*a9) and a10."""
+    return np.concatenate([[a1], x[:8], [a10, x[8] / x[7]]])
+
+
 def _linear_coefficients(triangle: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
     """Least squares [c, a10] from the R factor with a10 >= 0 (one bound: if the unconstrained a10 is
     negative the bound is active at the optimum); also the first row of the residual's subspace."""
@@ -239,7 +247,8 @@ def _linear_coefficients(triangle: np.ndarray, rhs: np.ndarray) -> tuple[np.ndar
 
 
 def _bounds(u: np.ndarray, y: np.ndarray, a1: float, operators: int) -> tuple[np.ndarray, np.ndarray]:
-    """Box for (a2..a9, a11): increasing envelopes, positive thresholds, ranges from the data scale."""
+    """Box for (a2..a9, a11*a9): increasing envelopes, positive thresholds, ranges from the data scale,
+    weights within DECAY_LIMITS of each other."""
     half_range = 0.5 * float(np.ptp(u))
     centre = 0.5 * float(np.max(u) + np.min(u))
     shift = 100.0 * (abs(centre) / half_range + 10.0)
@@ -247,8 +256,9 @@ def _bounds(u: np.ndarray, y: np.ndarray, a1: float, operators: int) -> tuple[np
     gain = (1e-2 / half_range, 1e2 / half_range)
     offset = (middle - 100.0 * a1, middle + 100.0 * a1)
     a9_high = 10.0 * a1 / max(operators - 1, 1)
-    low = [gain[0], -shift, offset[0], 1e-2 * a1, gain[0], -shift, offset[0], 1e-8 * a1, -20.0 / a1]
-    high = [gain[1], shift, offset[1], 1e2 * a1, gain[1], shift, offset[1], a9_high, 1e3 / a1]
+    steps = max(operators - 1, 1)
+    low = [gain[0], -shift, offset[0], 1e-2 * a1, gain[0], -shift, offset[0], 1e-8 * a1, DECAY_LIMITS[0] / steps]
+    high = [gain[1], shift, offset[1], 1e2 * a1, gain[1], shift, offset[1], a9_high, DECAY_LIMITS[1] / steps]
     return np.array(low), np.array(high)
 
 
@@ -261,7 +271,7 @@ def _free_start(params: GPIParameters) -> tuple[float, np.ndarray]:
         a[scale], a[gain] = abs(a[scale]), abs(a[gain])
     if a[0] == 0.0:
         raise InputError("the warm start has a1 = 0 (a flat loading envelope)")
-    return float(a[0]), np.concatenate([a[1:9], a[10:11]])
+    return float(a[0]), np.concatenate([a[1:9], [a[10] * a[8]]])
 
 
 @dataclass
@@ -335,7 +345,7 @@ def _setup(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
 
 
 def _parameters(problem_a1: float, x: np.ndarray, a10: float, operators: int, unit: str) -> GPIParameters:
-    theta = np.concatenate([[problem_a1], x[:8], [a10, x[8]]])
+    theta = _theta(problem_a1, x, a10)
     return normalized(GPIParameters.from_array(theta, output_unit=unit), operators)
 
 
@@ -425,7 +435,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
 
 def _start_from(found: _Search) -> GPIParameters:
     """The parameters a search reached, in its own scale (a1 held, a10 a placeholder: it is projected)."""
-    return GPIParameters.from_array(np.concatenate([[found.a1], found.x[:8], [1.0, found.x[8]]]))
+    return GPIParameters.from_array(_theta(found.a1, found.x))
 
 
 def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial: GPIParameters | None = None,
