@@ -155,8 +155,10 @@ def _check_regressors(regressors: np.ndarray | None, samples: int, columns: int 
     return matrix
 
 
-def check_data(u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Input [A] and output as float arrays, refused (InputError) unless fit for identification."""
+def check_data(u: np.ndarray, y: np.ndarray, regressors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Input [A] and output as float arrays, refused (InputError) unless fit for identification: finite,
+    equal lengths, at least MIN_SAMPLES, both varying, and the output (less what the regressor columns
+    explain) rising with the input."""
     u = as_signal(u, "input")
     y = as_signal(y, "output")
     if u.size != y.size:
@@ -166,7 +168,10 @@ def check_data(u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for name, values in (("input", u), ("output", y)):
         if np.ptp(values) <= 1e-12 * max(1.0, float(np.max(np.abs(values)))):
             raise InputError(f"no excitation: the {name} is constant")
-    if np.cov(u, y)[0, 1] <= 0.0:
+    trend = y
+    if regressors is not None and np.size(regressors):
+        trend = y - regressors @ np.linalg.lstsq(regressors, y, rcond=None)[0]
+    if np.cov(u, trend)[0, 1] <= 0.0:
         raise InputError("the output falls as the input rises; the GPI model is increasing (negate the output)")
     return u, y
 
@@ -457,8 +462,8 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     on a thinned copy and the best is refined on all samples.
     """
     clock = time.perf_counter()
-    u, y = check_data(u, y)
-    matrix = _check_regressors(regressors, u.size)
+    matrix = _check_regressors(regressors, np.size(u))
+    u, y = check_data(u, y, matrix)
     if initial is not None and not isinstance(initial, GPIParameters):
         raise InputError(f"initial must be GPIParameters, got {type(initial).__name__}")
     if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
