@@ -181,7 +181,7 @@ class _Projected:
 
     One Householder QR of [regressors, s, ds/d(free), y] gives the linear coefficients (a10 >= 0, c),
     the projected residual and Kaufman's Jacobian P_perp a10 ds/dθ in the same orthonormal basis, so
-    TRF works on an 10-row problem with the same cost, gradient and Gauss-Newton model as the N-row one.
+    TRF works on a 10-row problem with the same cost, gradient and Gauss-Newton model as the N-row one.
     """
 
     def __init__(self, v: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, a1: float,
@@ -194,7 +194,6 @@ class _Projected:
         self._order = np.array([*range(m), m, *skip_a1, m + 1 + SENSITIVITY_COLUMNS], dtype=np.int64)
         self._x: np.ndarray | None = None
         self.evaluations = 0
-
 
     def _evaluate(self, x: np.ndarray) -> None:
         if self._x is not None and np.array_equal(x, self._x):
