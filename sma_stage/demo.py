@@ -1,22 +1,32 @@
-"""The demonstration behind `./run.sh demo`: the paper's Table 1, and hysteresis compensation with the
-GPI inverse on the paper's validation signal. Writes plots under --out and prints the figures."""
+"""The demonstration behind `./run.sh demo`: the paper's Table 1, hysteresis compensation with the GPI
+inverse on the paper's validation signal, and the three nodes end to end on the simulated stage.
+Writes plots under --out and prints the figures."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sma_stage.commands.paper import evaluate_paper
+from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
-from sma_stage.model import forward, inverse, load_model_file
+from sma_stage.model import PARAMETER_NAMES, forward, inverse, load_model_file
 from sma_stage.plots import Panel, save_panels
 from sma_stage.signals import paper_validation_signal
 
-DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "config" / "model_default.yaml"
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+DEFAULT_MODEL = CONFIG_DIR / "model_default.yaml"
 MAX_CURRENT_A = 5.0
 
 
@@ -46,25 +56,403 @@ def compensation_demo(model_path: Path, out_dir: Path) -> dict[str, dict[str, fl
     return errors
 
 
+# --- part 3: the three nodes as separate processes ------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EndToEndSettings:
+    """How the end-to-end run is paced and how long each part lasts (signal times in simulated s)."""
+
+    time_scale: float = 100.0          # simulated s per wall s: the stage's time_scale and the signals' pace
+    rate_hz: float = 100.0             # stage steps, joint_states and setpoints [Hz of wall time]
+    excite_duration_s: float = 1000.0  # the paper's identification signal
+    excite_period_s: float = 250.0
+    operators: int = 10
+    run_s: float = 1000.0              # the paper's validation signal
+    settle_s: float = 60.0             # before each run: at the bottom of the range, then at the first setpoint
+    stroke_fraction: float = 0.8       # the setpoint spans this fraction of the measured stroke
+    ready_timeout_s: float = 120.0     # [wall s] for the nodes to start
+    refit_timeout_s: float = 120.0     # [wall s]
+
+    def wall_s(self, simulated_s: float) -> float:
+        """Nominal wall seconds for simulated_s."""
+        return simulated_s / self.time_scale
+
+    def wall_timeout_s(self, simulated_s: float) -> float:
+        """Wall seconds allowed for simulated_s: three times the nominal, plus 10 s."""
+        return 3.0 * self.wall_s(simulated_s) + 10.0
+
+
+@dataclass(frozen=True)
+class TrackingRun:
+    """One tracking run: time [s simulated, 0 where the signal starts, negative while settling], setpoint and
+    measured position [m], the last current command [A] at each sample; errors [% of stroke] for t >= 0."""
+
+    name: str
+    t: np.ndarray
+    setpoint: np.ndarray
+    position: np.ndarray
+    current: np.ndarray
+    rms_pct: float
+    max_pct: float
+
+
+class StageSession:
+    """The demo's own node: records joint_states and publishes a setpoint profile at rate_hz.
+
+    Times are the ROS clock's (system time), which also stamps joint_states; a profile is a function of
+    simulated time, that is wall time since its start times time_scale.
+    """
+
+    def __init__(self, node: object, settings: EndToEndSettings) -> None:
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64
+
+        from sma_stage.nodes._common import COMMAND_QOS
+
+        self._lock = threading.Lock()
+        self._float = Float64
+        self._clock = node.get_clock()
+        self.time_scale = settings.time_scale
+        self.stamps: list[float] = []
+        self.positions: list[float] = []
+        self.commands: list[tuple[float, float]] = []
+        self.profile: Callable[[float], float] | None = None
+        self.profile_start_s = 0.0
+        self.setpoint_pub = node.create_publisher(Float64, "setpoint", COMMAND_QOS)
+        node.create_subscription(JointState, "joint_states", self.on_state,
+                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        node.create_subscription(Float64, "current_cmd", self.on_command, COMMAND_QOS)
+        node.create_timer(1.0 / settings.rate_hz, self.on_tick)
+
+    def now_s(self) -> float:
+        """The ROS clock [s]."""
+        return self._clock.now().nanoseconds * 1e-9
+
+    def on_tick(self) -> None:
+        """Publish the profile's setpoint [m] for the simulated time since its start."""
+        with self._lock:
+            profile, start = self.profile, self.profile_start_s
+        if profile is not None:
+            self.setpoint_pub.publish(self._float(data=float(profile((self.now_s() - start) * self.time_scale))))
+
+    def on_state(self, message: object) -> None:
+        """Record the stage position [m] at its header stamp [s]."""
+        if message.position:
+            with self._lock:
+                self.stamps.append(message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec)
+                self.positions.append(float(message.position[0]))
+
+    def on_command(self, message: object) -> None:
+        """Record a current command [A] at its arrival time [s]."""
+        with self._lock:
+            self.commands.append((self.now_s(), float(message.data)))
+
+    def states_between(self, start_s: float, stop_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps [s], positions [m]) recorded with start_s <= stamp <= stop_s."""
+        with self._lock:
+            stamps, positions = np.array(self.stamps), np.array(self.positions)
+        kept = (stamps >= start_s) & (stamps <= stop_s)
+        return stamps[kept], positions[kept]
+
+    def commands_at(self, times_s: np.ndarray) -> np.ndarray:
+        """The last current command [A] received at or before each time [s] (NaN before the first)."""
+        with self._lock:
+            commands = np.array(self.commands).reshape(-1, 2)
+        index = np.searchsorted(commands[:, 0], times_s, side="right") - 1
+        return np.where(index >= 0, commands[np.maximum(index, 0), 1] if len(commands) else np.nan, np.nan)
+
+    def drive(self, profile: Callable[[float], float], simulated_s: float, check: Callable[[], None]) -> float:
+        """Publish profile(simulated time) for simulated_s; the start [s of the ROS clock]. Returns once the
+        stage's joint_states reached the end."""
+        from sma_stage.nodes.launch import wait_for
+
+        with self._lock:
+            self.profile_start_s = start = self.now_s()
+            self.profile = profile
+        stop = start + simulated_s / self.time_scale
+        try:
+            wait_for(lambda: self.now_s() >= stop, simulated_s / self.time_scale + 10.0, "the end of a run", check)
+        finally:
+            with self._lock:
+                self.profile = None
+        wait_for(lambda: self.stamps[-1] >= stop, 10.0, "joint_states up to the end of the run", check)
+        return start
+
+    def prime(self, setpoint_m: float, timeout_s: float, check: Callable[[], None]) -> None:
+        """Publish one setpoint [m] and wait for a current command in answer (the compensator's first one
+        loads its compiled inverse)."""
+        from sma_stage.nodes.launch import wait_for
+
+        with self._lock:
+            seen = len(self.commands)
+        self.setpoint_pub.publish(self._float(data=float(setpoint_m)))
+        wait_for(lambda: len(self.commands) > seen, timeout_s, "a current command from the compensator", check)
+
+
+def validation_profile(bottom_m: float, middle_m: float, half_span_m: float,
+                       settle_s: float) -> Callable[[float], float]:
+    """Setpoint [m] at time t [s]: settle_s at bottom_m, settle_s at the signal's start, then the signal."""
+    def setpoint(t: float) -> float:
+        if t < settle_s:
+            return bottom_m
+        shape = paper_validation_signal(max(t - 2.0 * settle_s, 0.0)) / 5.0
+        return float(middle_m + half_span_m * shape)
+    return setpoint
+
+
+def tracking_run(session: StageSession, name: str, stroke: tuple[float, float], settings: EndToEndSettings,
+                 check: Callable[[], None]) -> TrackingRun:
+    """Drive the scaled validation signal through the compensator; errors over the signal part only."""
+    low, high = stroke
+    middle, half_span = 0.5 * (low + high), 0.5 * settings.stroke_fraction * (high - low)
+    profile = validation_profile(middle - half_span, middle, half_span, settings.settle_s)
+    lead_s = 2.0 * settings.settle_s
+    session.prime(profile(0.0), settings.ready_timeout_s, check)
+    start = session.drive(profile, lead_s + settings.run_s, check)
+    stamps, position = session.states_between(start, start + settings.wall_s(lead_s + settings.run_s))
+    t = (stamps - start) * settings.time_scale
+    setpoint = np.array([profile(value) for value in t])
+    error = (position - setpoint)[t >= lead_s]
+    scale = 100.0 / (high - low)
+    return TrackingRun(name, t - lead_s, setpoint, position, session.commands_at(stamps),
+                       float(scale * np.sqrt(np.mean(error**2))), float(scale * np.max(np.abs(error))))
+
+
+def node_parameters(settings: EndToEndSettings, work_dir: Path) -> dict[str, dict[str, object]]:
+    """Overrides of config/<node>.yaml: the stage sped up by time_scale, the excitation paced to match."""
+    return {
+        "stage_node": {"rate_hz": settings.rate_hz, "time_scale": settings.time_scale, "command_timeout": 2.0},
+        "compensator_node": {"rate_hz": 50.0, "feedback": False},
+        "identification_node": {"operators": settings.operators,
+                                "model_file": str(work_dir / "identified_model.yaml"),
+                                "excite_duration": settings.excite_duration_s,
+                                "excite_period": settings.excite_period_s,
+                                "excite_time_scale": settings.time_scale, "excite_rate_hz": settings.rate_hz,
+                                "record_bag": str(work_dir / "session_bag"), "bag_overwrite": True},
+    }
+
+
+def excite_and_refit(client: object, session: StageSession, settings: EndToEndSettings,
+                     check: Callable[[], None]) -> tuple[dict, tuple[float, float]]:
+    """~/excite, wait for its end, ~/refit: the JSON report and the stroke measured meanwhile [m]."""
+    from sma_stage.nodes.launch import wait_for
+
+    start = session.now_s()
+    ok, message = client.trigger("identification/excite")
+    if not ok:
+        raise InputError(f"~/excite refused: {message}")
+    stop = start + settings.wall_s(settings.excite_duration_s)
+    wait_for(lambda: session.now_s() >= stop, settings.wall_timeout_s(settings.excite_duration_s),
+             "the end of the excitation", check)
+    _, positions = session.states_between(start, stop)
+    deadline = time.monotonic() + 30.0
+    while True:
+        ok, message = client.trigger("identification/refit", timeout_s=settings.refit_timeout_s)
+        if ok or "excitation is running" not in message or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    if not ok:
+        raise InputError(f"~/refit: {message}")
+    return json.loads(message), (float(positions.min()), float(positions.max()))
+
+
+RUN_ORDER = ("default, feedforward", "identified, feedforward", "default, PI loop", "identified, PI loop")
+PI_GAINS = {"kp": 1.0, "ki_per_simulated_s": 0.1}  # config/compensator.yaml's gains
+
+
+def track_with_both_models(client: object, session: StageSession, stroke: tuple[float, float],
+                           settings: EndToEndSettings, check: Callable[[], None],
+                           identified: bool) -> dict[str, TrackingRun]:
+    """Tracking runs with the model ~/refit pushed (when it did), then with the default model reloaded
+    from its file; each feedforward and with the PI loop (ki scaled to the wall clock the node runs on)."""
+    pi = {"feedback": True, "kp": PI_GAINS["kp"], "ki": PI_GAINS["ki_per_simulated_s"] * settings.time_scale}
+    runs = {}
+    if identified:
+        runs["identified, feedforward"] = tracking_run(session, "identified model, feedforward", stroke, settings,
+                                                       check)
+        client.set_parameters("compensator", pi)
+        runs["identified, PI loop"] = tracking_run(session, "identified model, PI loop", stroke, settings, check)
+    client.set_parameters("compensator", {"model_file": str(DEFAULT_MODEL), **pi})
+    ok, message = client.trigger("compensator/reload")
+    if not ok:
+        raise InputError(f"compensator ~/reload: {message}")
+    runs["default, PI loop"] = tracking_run(session, "default model, PI loop", stroke, settings, check)
+    client.set_parameters("compensator", {"feedback": False})
+    runs["default, feedforward"] = tracking_run(session, "default model, feedforward", stroke, settings, check)
+    return runs
+
+
+@contextmanager
+def sigterm_as_exit() -> Iterator[None]:
+    """Inside the block SIGTERM raises SystemExit in the main thread, so every `with` cleans up."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def leave(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, leave)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def default_domain_id() -> int:
+    """ROS_DOMAIN_ID from the environment, else one derived from the process id (1..101)."""
+    value = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    return int(value) if value.isdigit() else 1 + os.getpid() % 101
+
+
+NODE_CONFIGS = {"stage_node": "stage", "compensator_node": "compensator", "identification_node": "identification"}
+
+
+def start_nodes(nodes: object, settings: EndToEndSettings) -> None:
+    """Start the three executables with config/<node>.yaml and the run's overrides (returns at once)."""
+    os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    parameters = node_parameters(settings, nodes.log_dir)
+    for executable, config in NODE_CONFIGS.items():
+        nodes.start(executable, parameters[executable], [CONFIG_DIR / f"{config}.yaml"])
+
+
+def run_end_to_end(nodes: object, settings: EndToEndSettings, out_dir: Path, launched_at: float) -> dict:
+    """With the nodes started: excite, refit, track with the identified and the default model, stop them."""
+    from sma_stage.nodes.launch import RosClient, wait_for
+
+    with RosClient(nodes.domain_id, "sma_demo") as client:
+        session = StageSession(client.node, settings)
+        client.wait_for_services(["stage/stop", "compensator/reload", "identification/refit"],
+                                 settings.ready_timeout_s, nodes.check_running)
+        wait_for(lambda: session.stamps, settings.ready_timeout_s, "joint_states", nodes.check_running)
+        ready = time.monotonic()
+        report, stroke = excite_and_refit(client, session, settings, nodes.check_running)
+        refitted = time.monotonic()
+        held = client.get_parameters("compensator", [*PARAMETER_NAMES, "operators"])
+        pushed = held == {**report["model"]["parameters"], "operators": report["model"]["operators"]}
+        runs = track_with_both_models(client, session, stroke, settings, nodes.check_running,
+                                      identified=bool(report["compensator"]["pushed"]))
+    exits = nodes.stop_all()
+    save_tracking_plots(out_dir / "tracking.png", [runs[key] for key in RUN_ORDER if key in runs])
+    return {"report": report, "stroke_m": stroke, "compensator_holds_fit": pushed, "runs": runs,
+            "exit_codes": exits, "domain_id": nodes.domain_id, "work_dir": nodes.log_dir,
+            "seconds": {"start": ready - launched_at, "excite_and_refit": refitted - ready,
+                        "total": time.monotonic() - launched_at}}
+
+
+def end_to_end_demo(out_dir: Path, settings: EndToEndSettings = EndToEndSettings(),
+                    domain_id: int | None = None) -> dict:
+    """Start the three node executables, excite, refit, track; every child stopped on any way out."""
+    from sma_stage.nodes.launch import NodeProcesses
+
+    domain_id = default_domain_id() if domain_id is None else domain_id
+    with sigterm_as_exit(), NodeProcesses(out_dir / "nodes", domain_id) as nodes:
+        launched_at = time.monotonic()
+        start_nodes(nodes, settings)
+        return run_end_to_end(nodes, settings, out_dir, launched_at)
+
+
+def save_tracking_plots(path: Path, runs: Sequence[TrackingRun]) -> None:
+    """Per run: setpoint and position against time, the current command, and position against setpoint
+    over the signal (t >= 0; before it the stage settles)."""
+    panels = []
+    for run in runs:
+        setpoint_um, position_um = 1e6 * run.setpoint, 1e6 * run.position
+        signal = run.t >= 0.0
+        panels.append(Panel(f"{run.name}: RMS {run.rms_pct:.2f} %, max {run.max_pct:.2f} % of stroke", run.t,
+                            [("setpoint", setpoint_um), ("stage position", position_um)],
+                            "time [s, simulated; settling before 0]", "position [um]"))
+        panels.append(Panel(f"{run.name}: current command", run.t, [("current_cmd", run.current)],
+                            "time [s, simulated]", "current [A]"))
+        panels.append(Panel(f"{run.name}: setpoint to position (t >= 0)", setpoint_um[signal],
+                            [("stage", position_um[signal]), ("ideal", setpoint_um[signal])],
+                            "setpoint [um]", "position [um]"))
+    save_panels(path, panels, columns=3)
+
+
+def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) -> None:
+    """The end-to-end figures as the README quotes them."""
+    report, (low, high) = result["report"], result["stroke_m"]
+    seconds = result["seconds"]
+    print(f"\n3. End to end: stage_node, compensator_node and identification_node as separate processes "
+          f"(ROS_DOMAIN_ID {result['domain_id']}, logs in {result['work_dir']}); the simulated stage runs "
+          f"{settings.time_scale:g}x faster than real time, {settings.rate_hz:g} steps per wall second.")
+    print(f"   nodes launched before part 1, serving {seconds['start']:.1f} s later; ~/excite ({settings.excite_duration_s:g} s of the paper's "
+          f"identification signal) and ~/refit took {seconds['excite_and_refit']:.1f} s")
+    ident, valid = report["identification"], report["validation"]
+    print(f"   ~/refit: {report['model']['operators']} operators on {ident['samples']} samples in "
+          f"{report['fit_seconds']:.1f} s; error rms {ident['rms_pct']:.2f} % max {ident['max_pct']:.2f} %; "
+          f"held-out tail ({valid['samples']} samples) rms {valid['rms_pct']:.2f} % max {valid['max_pct']:.2f} %")
+    print(f"   model file {report['model_file']}; {report['compensator']['message']}; the compensator "
+          f"{'holds' if result['compensator_holds_fit'] else 'does NOT hold'} the fitted parameters")
+    print(f"   measured stroke {1e6 * low:.1f} to {1e6 * high:.1f} um; the paper's validation signal scaled to "
+          f"{100 * settings.stroke_fraction:g} % of it, {settings.run_s:g} s, through the exact inverse alone "
+          f"(feedforward) and with the PI loop (kp {PI_GAINS['kp']:g}, ki {PI_GAINS['ki_per_simulated_s']:g}/s); "
+          f"error in % of the stroke, plots in {out_dir / 'tracking.png'}:")
+    print(f"   {'compensator model, mode':40s} {'rms %':>8s} {'max %':>8s}")
+    for key in RUN_ORDER:
+        run = result["runs"].get(key)
+        if run is None:
+            print(f"   {key:40s} not run: {report['compensator']['message']}")
+        else:
+            still = np.ptp(run.current[np.isfinite(run.current)]) == 0.0
+            print(f"   {key:40s} {run.rms_pct:8.2f} {run.max_pct:8.2f}"
+                  + (f"   (current_cmd stayed at {run.current[-1]:g} A throughout)" if still else ""))
+    print(f"   wall time from the nodes' launch to their exit: {seconds['total']:.1f} s")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the demonstration and print its figures."""
     parser = argparse.ArgumentParser(prog="sma_stage.demo", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="folder for plots and reports")
     parser.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="GPI model file to compensate with")
+    parser.add_argument("--no-nodes", action="store_true", help="skip part 3 (the ROS 2 nodes end to end)")
+    parser.add_argument("--time-scale", type=float, default=EndToEndSettings.time_scale,
+                        help="simulated seconds per wall second in part 3")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="ROS_DOMAIN_ID for part 3 (default: $ROS_DOMAIN_ID, else derived from the pid)")
     args = parser.parse_args(argv)
-    paper = evaluate_paper(args.out / "paper", operators=10)
+    began = time.monotonic()
+    with ExitStack() as stack:
+        nodes, settings, launched_at = None, EndToEndSettings(time_scale=args.time_scale), time.monotonic()
+        if not args.no_nodes:
+            from sma_stage.nodes.launch import NodeProcesses
+
+            domain_id = default_domain_id() if args.domain_id is None else args.domain_id
+            stack.enter_context(sigterm_as_exit())
+            nodes = stack.enter_context(NodeProcesses(args.out / "nodes", domain_id))
+            start_nodes(nodes, settings)  # they start up while parts 1 and 2 run
+        model_parts(args.out, args.model)
+        if nodes is None:
+            return 0
+        sys.stdout.flush()
+        try:
+            result = run_end_to_end(nodes, settings, args.out, launched_at)
+        except InputError as error:
+            print(f"error: part 3 (nodes end to end): {error}", file=sys.stderr)
+            return 2
+    print_end_to_end(result, settings, args.out)
+    print(f"\nDemonstration wall time: {time.monotonic() - began:.1f} s")
+    return 0
+
+
+def model_parts(out_dir: Path, model_path: Path) -> None:
+    """Parts 1 and 2: the paper's Table 1, and compensation through the model alone."""
+    paper = evaluate_paper(out_dir / "paper", operators=10)
     print("1. The paper's Table 1 under eqs 1-5 as printed "
-          f"(plots and summary in {args.out / 'paper'}):")
+          f"(plots and summary in {out_dir / 'paper'}):")
     print(f"   a10 = {paper['table_1']['a10']}, smallest gl - gr = {paper['smallest_gl_minus_gr']:.3g}:")
     for name, values in paper["readings"].items():
         print(f"   {name:45s} loop width {values['loop_width']:.3g} of span {values['loop_span']:.4g}")
-    errors = compensation_demo(args.model, args.out)
-    print(f"\n2. Tracking the paper's validation signal through the model {args.model.name} "
-          f"(error in % of the setpoint span; plots in {args.out / 'compensation.png'}):")
+    errors = compensation_demo(model_path, out_dir)
+    print(f"\n2. Tracking the paper's validation signal through the model {model_path.name} "
+          f"(error in % of the setpoint span; plots in {out_dir / 'compensation.png'}):")
     print(f"   {'current from':32s} {'rms %':>8s} {'max %':>8s}")
     for name, values in errors.items():
         print(f"   {name:32s} {values['rms_pct']:8.3f} {values['max_pct']:8.3f}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -1,0 +1,265 @@
+"""Start the package's node executables as child processes and talk to them from this process.
+
+`NodeProcesses` starts installed executables (stage_node, compensator_node, identification_node) with
+parameters, logs each one to a file and stops them all (SIGTERM, then SIGKILL) when its `with` block
+ends, whatever ends it; on Linux a child also gets SIGTERM if this process dies without cleaning up.
+`RosClient` is a private rclpy context with a background executor: wait for services, call Trigger
+services, set and get parameters, read the (simulated) clock.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import yaml
+
+from sma_stage.errors import InputError
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+STOP_TIMEOUT_S = 10.0
+_PR_SET_PDEATHSIG = 1
+
+
+def find_executable(name: str) -> Path:
+    """The installed executable `name`: next to this Python (a venv's bin/) or on PATH."""
+    beside = Path(sys.executable).parent / name
+    if beside.is_file() and os.access(beside, os.X_OK):
+        return beside
+    found = shutil.which(name)
+    if found is None:
+        raise InputError(f"executable '{name}' not found next to {sys.executable} or on PATH: is sma_stage installed?")
+    return Path(found)
+
+
+def ros_environment(domain_id: int) -> dict[str, str]:
+    """This process's environment for a child node: the given domain, local discovery, Fast DDS by default."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0")
+    env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    return env
+
+
+def _die_with_parent() -> Callable[[], None] | None:
+    """A preexec_fn asking Linux to send the child SIGTERM when this process dies (None elsewhere)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    return lambda: prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+class NodeProcess:
+    """One child process running a node executable, its output going to log_path."""
+
+    def __init__(self, name: str, popen: subprocess.Popen, log_path: Path) -> None:
+        self.name = name
+        self.popen = popen
+        self.log_path = log_path
+
+    @property
+    def running(self) -> bool:
+        """True while the process has not exited."""
+        return self.popen.poll() is None
+
+    def log_tail(self, lines: int = 15) -> str:
+        """The last lines of its output."""
+        try:
+            text = self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+        return "\n".join(text.splitlines()[-lines:])
+
+    def failure(self) -> str:
+        """One line saying how it ended: its own 'error:' line when it printed one."""
+        errors = [line for line in self.log_tail(50).splitlines() if line.startswith("error:")]
+        detail = errors[-1] if errors else f"see {self.log_path}"
+        return f"{self.name} exited with status {self.popen.returncode}: {detail}"
+
+
+class NodeProcesses:
+    """Node executables started as child processes, all stopped when the `with` block ends."""
+
+    def __init__(self, log_dir: Path, domain_id: int) -> None:
+        self.log_dir = Path(log_dir)
+        self.domain_id = domain_id
+        self.processes: list[NodeProcess] = []
+        self._lock = threading.Lock()
+
+    def start(self, executable: str, parameters: Mapping[str, Any] | None = None,
+              params_files: Iterable[Path] = ()) -> NodeProcess:
+        """Start an executable with its parameter files, then `parameters` (which win), in this domain.
+
+        Call it from the thread that outlives the child (Linux ties the child's life to that thread).
+        """
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        command = [str(find_executable(executable)), "--ros-args"]
+        for path in params_files:
+            command += ["--params-file", str(path)]
+        if parameters:
+            overrides = self.log_dir / f"{executable}.params.yaml"
+            overrides.write_text(yaml.safe_dump({"/**": {"ros__parameters": dict(parameters)}}, sort_keys=False))
+            command += ["--params-file", str(overrides)]
+        log_path = self.log_dir / f"{executable}.log"
+        with open(log_path, "wb") as log:
+            popen = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                                     env=ros_environment(self.domain_id), preexec_fn=_die_with_parent())
+        process = NodeProcess(executable, popen, log_path)
+        with self._lock:
+            self.processes.append(process)
+        return process
+
+    def check_running(self) -> None:
+        """InputError naming the first child that has exited, with its error line."""
+        for process in self.processes:
+            if not process.running:
+                raise InputError(process.failure())
+
+    def stop_all(self, timeout_s: float = STOP_TIMEOUT_S) -> dict[str, int]:
+        """SIGTERM every child, wait up to timeout_s for all, SIGKILL the rest; their exit statuses."""
+        with self._lock:
+            processes, self.processes = self.processes, []
+        for process in processes:
+            if process.running:
+                process.popen.terminate()
+        deadline = time.monotonic() + timeout_s
+        for process in processes:
+            try:
+                process.popen.wait(max(deadline - time.monotonic(), 0.0))
+            except subprocess.TimeoutExpired:
+                process.popen.kill()
+                process.popen.wait()
+        return {process.name: process.popen.returncode for process in processes}
+
+    def __enter__(self) -> NodeProcesses:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 traceback: TracebackType | None) -> None:
+        self.stop_all()
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str,
+             check: Callable[[], None] | None = None, poll_s: float = 0.01) -> None:
+    """Poll until predicate() is true; InputError after timeout_s [wall s]; check() may raise meanwhile."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if check is not None:
+            check()
+        if time.monotonic() > deadline:
+            raise InputError(f"timed out after {timeout_s:g} s waiting for {what}")
+        time.sleep(poll_s)
+
+
+class RosClient:
+    """A node of this process in a private rclpy context, spun by a background executor."""
+
+    def __init__(self, domain_id: int, name: str = "sma_client", use_sim_time: bool = False) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.parameter import Parameter
+
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = Node(name, context=self.context,
+                         parameter_overrides=[Parameter("use_sim_time", value=use_sim_time)])
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._clients: dict[tuple[object, str], Any] = {}
+        self._thread = threading.Thread(target=self._spin, name="ros-client", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # noqa: BLE001 -- the context was shut down under a callback while closing
+            if self.context.ok():
+                raise
+
+    def now_s(self) -> float:
+        """The node clock [s] (simulated time with use_sim_time; 0 before the first /clock)."""
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def _client(self, service_type: object, name: str) -> Any:
+        key = (service_type, name)
+        if key not in self._clients:
+            self._clients[key] = self.node.create_client(service_type, name)
+        return self._clients[key]
+
+    def wait_for_services(self, names: Iterable[str], timeout_s: float,
+                          check: Callable[[], None] | None = None) -> None:
+        """Wait until every Trigger service in names is offered (check() may raise meanwhile)."""
+        from std_srvs.srv import Trigger
+
+        for name in names:
+            client = self._client(Trigger, name)
+            wait_for(client.service_is_ready, timeout_s, f"service {name}", check, poll_s=0.05)
+
+    def call(self, service_type: object, name: str, request: object, timeout_s: float) -> Any:
+        """Call a service and return its response; InputError when nobody answers within timeout_s."""
+        client = self._client(service_type, name)
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise InputError(f"service {name} is not available")
+        future = client.call_async(request)
+        wait_for(future.done, timeout_s, f"the answer of {name}")
+        if future.result() is None:
+            raise InputError(f"service {name} failed: {future.exception()}")
+        return future.result()
+
+    def trigger(self, name: str, timeout_s: float = 10.0) -> tuple[bool, str]:
+        """Call a std_srvs/Trigger service: (success, message)."""
+        from std_srvs.srv import Trigger
+
+        response = self.call(Trigger, name, Trigger.Request(), timeout_s)
+        return bool(response.success), str(response.message)
+
+    def set_parameters(self, node_name: str, values: Mapping[str, Any], timeout_s: float = 5.0) -> None:
+        """Set parameters of another node atomically; InputError with its reason when refused."""
+        from rcl_interfaces.srv import SetParametersAtomically
+        from rclpy.parameter import Parameter
+
+        request = SetParametersAtomically.Request(
+            parameters=[Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+        result = self.call(SetParametersAtomically, f"{node_name}/set_parameters_atomically", request,
+                           timeout_s).result
+        if not result.successful:
+            raise InputError(f"{node_name} refused the parameters: {result.reason}")
+
+    def get_parameters(self, node_name: str, names: Iterable[str], timeout_s: float = 5.0) -> dict[str, Any]:
+        """Values of parameters of another node."""
+        from rcl_interfaces.srv import GetParameters
+        from rclpy.parameter import parameter_value_to_python
+
+        names = list(names)
+        response = self.call(GetParameters, f"{node_name}/get_parameters", GetParameters.Request(names=names),
+                             timeout_s)
+        return {name: parameter_value_to_python(value) for name, value in zip(names, response.values, strict=True)}
+
+    def close(self) -> None:
+        """Stop the executor and shut the context down."""
+        self.executor.shutdown(timeout_sec=2.0)
+        self._thread.join(timeout=2.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+    def __enter__(self) -> RosClient:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 traceback: TracebackType | None) -> None:
+        self.close()
