@@ -80,3 +80,31 @@ def test_simulate_refuses_bad_settings(arguments, tmp_path, capsys):
     assert main(["simulate", "--input", "validation", "--out", str(tmp_path / "s.csv"), *arguments]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert not (tmp_path / "s.csv").exists()
+
+
+def test_diagnose_fills_every_key_of_the_report(tmp_path, capsys):
+    from synthetic import make_case
+
+    case = make_case("delay", seed=3)
+    paths = []
+    for name, record in (("ident", case.identification), ("valid", case.validation)):
+        paths.append(tmp_path / f"{name}.csv")
+        np.savetxt(paths[-1], np.c_[record.t, record.u, record.y], delimiter=",", header="t,input,output",
+                   comments="")
+    assert main(["diagnose", str(paths[0]), "--validate", str(paths[1]), "--out", str(tmp_path / "out"),
+                 "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    diagnosis = report["diagnosis"]
+    assert diagnosis["effect"] == "delay"
+    assert diagnosis["after"]["validation"]["rms_pct"] < diagnosis["before"]["validation"]["rms_pct"] / 5
+    assert set(diagnosis) >= {"effect", "evidence", "parameters", "before", "after"}
+    assert report["validation"]["rms_pct"] == diagnosis["before"]["validation"]["rms_pct"]
+    for name in ("report.json", "report.md", "model.yaml", "diagnosis_loops.png", "diagnosis_correlations.png"):
+        assert (tmp_path / "out" / name).exists()
+
+
+def test_diagnose_needs_validation_data(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_status:
+        main(["diagnose", str(tmp_path / "ident.csv")])
+    assert exit_status.value.code == 2
+    assert "--validate" in capsys.readouterr().err
