@@ -30,6 +30,8 @@ SETPOINT_PERIOD_S = 1.0
 WARMUP_SETPOINTS = 200
 NODE_START_TIMEOUT_S = 60.0
 FIRST_REPLY_TIMEOUT_S = 60.0
+REPLY_GAP_S = 2.0
+MATCH_TOLERANCE_A = 1e-9        # consecutive setpoints' currents differ by millamperes
 STAGE_DRIVE_RATE_HZ = 50.0
 STAGE_DRIVE_AMPLITUDE_A = 3.0
 STAGE_DRIVE_PERIOD_S = 5.0
@@ -198,9 +200,11 @@ def expected_commands(setpoints: np.ndarray, max_current_a: float = 5.0) -> np.n
 
 @dataclass
 class LatencyRun:
-    """Round-trip times [ns] of the timed setpoints, replies that matched none, the node's CPU [s]."""
+    """Round-trip times [ns] of the timed setpoints, setpoints never answered, replies that matched none,
+    and the node's CPU time [s] over the run."""
 
     latencies_ns: list[int] = field(default_factory=list)
+    lost: int = 0
     unmatched: int = 0
     node_cpu_s: float | None = None
 
@@ -208,8 +212,9 @@ class LatencyRun:
 class LatencyProbe:
     """Publishes setpoints from a timer at a fixed rate and times the matching current_cmd replies.
 
-    A reply matches the oldest pending setpoint when its value equals the current expected for it;
-    anything else (the compensator's periodic repeat of its last command) counts as unmatched."""
+    A reply answers the oldest pending setpoint whose expected current it equals (within MATCH_TOLERANCE_A);
+    older pending ones were lost (the node's depth-10 queue overflowed). A reply that answers no pending
+    setpoint (the compensator's periodic repeat of its last command) counts as unmatched."""
 
     def __init__(self, ros: Ros, setpoints: np.ndarray, expected: np.ndarray, rate_hz: float) -> None:
         from std_msgs.msg import Float64
@@ -226,6 +231,8 @@ class LatencyProbe:
         self.next_index = 0
         self.stop_index = 0
         self.pending: deque[tuple[int, int]] = deque()
+        self.last_reply_s = time.monotonic()
+        self.reply_gap_s = REPLY_GAP_S
         self.run = LatencyRun()
         self.timer = None
 
@@ -244,22 +251,38 @@ class LatencyProbe:
         self.publisher.publish(message)
 
     def on_reply(self, message) -> None:
-        """Time a reply against the oldest pending setpoint."""
+        """Time a reply against the pending setpoint it answers."""
         now = time.perf_counter_ns()
-        if self.pending and message.data == self.expected[self.pending[0][0]]:
-            _, sent = self.pending.popleft()
-            self.run.latencies_ns.append(now - sent)
-        else:
-            self.run.unmatched += 1
+        self.last_reply_s = time.monotonic()
+        for position, (index, sent) in enumerate(self.pending):
+            if abs(message.data - self.expected[index]) <= MATCH_TOLERANCE_A:
+                for _ in range(position + 1):
+                    self.pending.popleft()
+                self.run.lost += position
+                self.run.latencies_ns.append(now - sent)
+                return
+        self.run.unmatched += 1
 
-    def send(self, ros: Ros, count: int, children: Sequence[Child], timeout_s: float) -> LatencyRun:
-        """Send the next count setpoints at the rate and wait for every reply; the run's figures."""
+    def finished(self) -> bool:
+        """All sent and answered, or no reply for REPLY_GAP_S after the last send (the rest count as lost)."""
+        if self.next_index < self.stop_index:
+            return False
+        return not self.pending or time.monotonic() - self.last_reply_s > self.reply_gap_s
+
+    def send(self, ros: Ros, count: int, children: Sequence[Child], timeout_s: float,
+             reply_gap_s: float = REPLY_GAP_S) -> LatencyRun:
+        """Send the next count setpoints at the rate and collect the replies; the run's figures."""
         self.run = LatencyRun()
+        self.reply_gap_s = reply_gap_s
         self.stop_index = self.next_index + count
+        self.last_reply_s = time.monotonic()
         if self.timer is None:
             self.timer = self.node.create_timer(self.period_s, self.send_next)
-        ros.spin_until(lambda: self.next_index >= self.stop_index and not self.pending, timeout_s,
-                       f"{count} replies on current_cmd (got {len(self.run.latencies_ns)})", children)
+        ros.spin_until(self.finished, timeout_s, f"{count} setpoints to be sent", children)
+        self.run.lost += len(self.pending)
+        self.pending.clear()
+        if not self.run.latencies_ns:
+            raise RuntimeError(f"no reply on current_cmd to {count} setpoints")
         return self.run
 
 
@@ -270,7 +293,7 @@ def measure_latency(ros: Ros, count: int, rate_hz: float, children: Sequence[Chi
     probe = LatencyProbe(ros, setpoints, expected, rate_hz)
     try:
         ros.spin_until(probe.connected, NODE_START_TIMEOUT_S, "the node under test to connect", children)
-        probe.send(ros, 1, children, FIRST_REPLY_TIMEOUT_S)
+        probe.send(ros, 1, children, FIRST_REPLY_TIMEOUT_S + 1.0, reply_gap_s=FIRST_REPLY_TIMEOUT_S)
         probe.send(ros, WARMUP_SETPOINTS, children, WARMUP_SETPOINTS / rate_hz + 30.0)
         cpu_before = children[0].cpu_seconds() if children else None
         run = probe.send(ros, count, children, count / rate_hz + 30.0)
@@ -298,6 +321,8 @@ def latency_case(case: Case, args: argparse.Namespace) -> LatencyRun:
 
             ros.add(CompensatorNode(context=ros.context, parameter_overrides=compensator_overrides()))
         return measure_latency(ros, args.setpoints, args.setpoint_rate, [child] if child else [], case.echo)
+    except RuntimeError as error:
+        raise RuntimeError(f"{case.label}: {error}") from None
     finally:
         if child is not None:
             child.stop()
@@ -344,22 +369,22 @@ def latency_table(args: argparse.Namespace) -> float:
         run = latency_case(case, args)
         values = np.array(run.latencies_ns, dtype=np.int64)
         cpu = "" if run.node_cpu_s is None else f"{run.node_cpu_s / values.size * 1e6:.0f}"
-        rows.append((case.label, values, str(run.unmatched), cpu))
+        rows.append((case.label, values, str(run.lost), str(run.unmatched), cpu))
     rows.append(("compensator `on_setpoint` called directly (no transport)",
-                 callback_cost(args.setpoints, args.setpoint_rate, args.domain_id), "", ""))
+                 callback_cost(args.setpoints, args.setpoint_rate, args.domain_id), "", "", ""))
     print(f"\n### setpoint -> current_cmd ({args.setpoints} setpoints at {args.setpoint_rate:g} Hz after "
           f"{WARMUP_SETPOINTS} warm-up ones, reliable QoS depth 10)\n")
     print("Round trip timed in the probe, from just before `publish(setpoint)` to the entry of its `current_cmd`")
     print("callback, so it includes the probe's own SingleThreadedExecutor. Separate processes unless the row")
     print("says otherwise; executor SingleThreadedExecutor (as the installed executables) unless it says")
     print("EventsExecutor (bench/node_runner.py). Node CPU: the node process's user+system time per setpoint.")
-    print("Unmatched: replies that answer no pending setpoint (the compensator repeats its last command every")
-    print("1/rate_hz = 10 s).\n")
-    print("| path | replies | unmatched | p50 [ms] | p99 [ms] | max [ms] | node CPU per setpoint [us] |")
-    print("|---|---|---|---|---|---|---|")
-    for label, values, unmatched, cpu in rows:
+    print("Lost: setpoints never answered (dropped from a full depth-10 queue); unmatched: replies that answer")
+    print("no pending setpoint (the compensator repeats its last command every 1/rate_hz = 10 s).\n")
+    print("| path | replies | lost | unmatched | p50 [ms] | p99 [ms] | max [ms] | node CPU per setpoint [us] |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, values, lost, unmatched, cpu in rows:
         p50, p99, peak = percentiles_ms(values)
-        print(f"| {label} | {values.size} | {unmatched} | {p50:.3f} | {p99:.3f} | {peak:.2f} | {cpu} |")
+        print(f"| {label} | {values.size} | {lost} | {unmatched} | {p50:.3f} | {p99:.3f} | {peak:.2f} | {cpu} |")
     return percentiles_ms(rows[0][1])[1]
 
 
@@ -437,6 +462,8 @@ def measure_stage(command: list[str], args: argparse.Namespace) -> StageRecord:
         record.node_cpu_s, record.probe_cpu_s = child.cpu_seconds() - node_cpu, time.process_time() - probe_cpu
         child.check_alive()
         return record
+    except RuntimeError as error:
+        raise RuntimeError(f"{' '.join(command[:3])}: {error}") from None
     finally:
         child.stop()
         ros.close()
