@@ -1,0 +1,147 @@
+"""The installed node executables as separate processes: excite, refit, the compensator receives the fitted
+parameters, and a setpoint then drives the simulated stage through the compensator (a short demo run)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64  # noqa: E402
+
+from sma_stage.model import PARAMETER_NAMES, GPIInverseStream, GPIParameters, load_model_file  # noqa: E402
+from sma_stage.nodes._common import COMMAND_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
+from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, find_executable, wait_for  # noqa: E402
+
+TIME_SCALE = 200.0  # simulated s per wall s: the 500 s excitation takes 2.5 s
+EXCITE_S = 500.0
+
+
+class Recorder:
+    """The latest joint_states positions [m] and current_cmd values [A] seen by the test's node."""
+
+    def __init__(self, node) -> None:
+        self.positions: list[float] = []
+        self.commands: list[float] = []
+        node.create_subscription(JointState, "joint_states", lambda m: self.positions.append(m.position[0]),
+                                 STATE_SUBSCRIBE_QOS)
+        node.create_subscription(Float64, "current_cmd", lambda m: self.commands.append(m.data), COMMAND_QOS)
+
+
+def start_system(nodes: NodeProcesses, model_file) -> None:
+    nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0},
+                [CONFIG_DIR / "stage.yaml"])
+    nodes.start("compensator_node", {"rate_hz": 50.0}, [CONFIG_DIR / "compensator.yaml"])
+    nodes.start("identification_node", {"excite_duration": EXCITE_S, "excite_time_scale": TIME_SCALE,
+                                         "excite_rate_hz": 100.0, "operators": 5, "min_samples": 60,
+                                         "model_file": str(model_file)},
+                [CONFIG_DIR / "identification.yaml"])
+
+
+def refit_after_excitation(client: RosClient, check) -> dict:
+    ok, message = client.trigger("identification/excite")
+    assert ok, message
+    time.sleep(EXCITE_S / TIME_SCALE)
+    deadline = time.monotonic() + 20.0
+    while True:
+        ok, message = client.trigger("identification/refit", timeout_s=60.0)
+        if ok or "excitation is running" not in message or time.monotonic() > deadline:
+            break
+        check()
+        time.sleep(0.1)
+    assert ok, message
+    return json.loads(message)
+
+
+def test_executables_excite_refit_push_and_track(tmp_path):
+    model_file = tmp_path / "fitted.yaml"
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    with NodeProcesses(tmp_path / "nodes", domain) as nodes:
+        start_system(nodes, model_file)
+        assert {p.name for p in nodes.processes} == {"stage_node", "compensator_node", "identification_node"}
+        with RosClient(domain, "e2e_test") as client:
+            seen = Recorder(client.node)
+            client.wait_for_services(["stage/stop", "compensator/reload", "identification/refit"], 60.0,
+                                     nodes.check_running)
+            wait_for(lambda: len(seen.positions) > 10, 30.0, "joint_states", nodes.check_running)
+            report = refit_after_excitation(client, nodes.check_running)
+            assert report["compensator"]["pushed"], report["compensator"]["message"]
+            nominal = EXCITE_S / TIME_SCALE * 100.0  # stage steps during the excitation; a busy machine loses some
+            assert report["samples"]["identification"] + report["samples"]["validation"] >= 0.4 * nominal
+            fitted = GPIParameters.from_dict(report["model"]["parameters"])
+            held = client.get_parameters("compensator", [*PARAMETER_NAMES, "operators"])
+            assert held == {**report["model"]["parameters"], "operators": 5}, "the compensator holds the fit"
+            assert load_model_file(model_file).parameters == fitted
+
+            stroke = (min(seen.positions), max(seen.positions))
+            assert stroke[1] - stroke[0] > 2e-4, f"the excitation moved the stage: {stroke}"
+            start = float(np.mean(seen.positions[-10:]))
+            target = start + (0.3 if start < np.mean(stroke) else -0.3) * (stroke[1] - stroke[0])
+            expected = GPIInverseStream(fitted, 5, "exact", input_range=(-5.0, 5.0)).step(target)
+            setpoint = client.node.create_publisher(Float64, "setpoint", COMMAND_QOS)
+            wait_for(lambda: client.node.count_subscribers("setpoint") >= 1, 10.0, "the compensator")
+            commands_before = len(seen.commands)
+            setpoint.publish(Float64(data=target))
+            wait_for(lambda: len(seen.commands) > commands_before, 10.0, "a current command", nodes.check_running)
+            assert abs(seen.commands[commands_before] - expected) <= 1e-12, "feedforward: the fitted model's inverse"
+            client.set_parameters("compensator", {"feedback": True, "kp": 1.0, "ki": 0.1 * TIME_SCALE})
+
+            def close_to_target() -> bool:
+                setpoint.publish(Float64(data=target))
+                return abs(np.mean(seen.positions[-5:]) - target) < 0.5 * abs(start - target)
+
+            wait_for(close_to_target, 20.0, f"the stage to move from {start:.3g} m toward {target:.3g} m",
+                     nodes.check_running, poll_s=0.05)
+        exits = nodes.stop_all()
+    assert exits == {"stage_node": 0, "compensator_node": 0, "identification_node": 0}, exits
+
+
+def test_node_processes_are_stopped_when_the_block_fails(tmp_path):
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    with pytest.raises(RuntimeError, match="leaving early"), NodeProcesses(tmp_path, domain) as nodes:
+        process = nodes.start("stage_node", {"rate_hz": 20.0})
+        wait_for(lambda: "stage ready" in process.log_path.read_text(), 30.0, "the stage", nodes.check_running)
+        raise RuntimeError("leaving early")
+    assert process.popen.returncode == 0, process.log_tail()
+    assert not nodes.processes
+
+
+def test_a_child_that_cannot_start_is_reported_with_its_error_line(tmp_path):
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    with NodeProcesses(tmp_path, domain) as nodes:
+        process = nodes.start("stage_node", {"rate_hz": 1e6})
+        process.popen.wait(60)
+        with pytest.raises(ValueError, match=r"stage_node exited with status 2: error: .*rate_hz"):
+            nodes.check_running()
+    assert find_executable("stage_node").name == "stage_node"
+
+
+def test_a_child_dies_with_its_parent(tmp_path):
+    """A parent killed without cleaning up (SIGKILL) takes its node process with it (Linux)."""
+    script = (f"import sys, time; from pathlib import Path; from sma_stage.nodes.launch import NodeProcesses; "
+              f"n = NodeProcesses(Path({str(tmp_path)!r}), {os.environ['ROS_DOMAIN_ID']}); "
+              f"p = n.start('stage_node', {{'rate_hz': 20.0}}); print(p.popen.pid, flush=True); time.sleep(60)")
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(parent.stdout.readline())
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        wait_for(lambda: not _alive(child), 20.0, "the orphaned node to exit")
+    finally:
+        parent.kill()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
