@@ -120,9 +120,11 @@ class Ros:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
 
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
+        # Keep Python's Ctrl-C (KeyboardInterrupt), so the finally blocks stop the node processes.
+        rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.nodes: list = []
 
@@ -568,10 +570,16 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
+def interrupt(signum: int, frame: object) -> None:
+    """SIGTERM handler: unwind like Ctrl-C so the node processes are stopped."""
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Run the benchmarks and print the tables and the verdicts on the targets."""
     global BIN_DIR
     args = parse_args(argv)
+    signal.signal(signal.SIGTERM, interrupt)
     if args.bin_dir is not None:
         BIN_DIR = args.bin_dir
     isolate_ros(args.domain_id)
@@ -589,4 +597,9 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:
+        sys.exit("interrupted (the node processes were stopped)")
+    except RuntimeError as error:
+        sys.exit(f"error: {error}")
