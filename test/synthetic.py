@@ -128,3 +128,34 @@ def make_case(effect: str, seed: int = 0, noise_sigma_m: float = NOISE_SIGMA_M,
     ident = record(paper_identification_signal, effect, truth, rng, noise_sigma_m, sample_period_s, duration_s)
     valid = record(paper_validation_signal, effect, truth, rng, noise_sigma_m, sample_period_s, duration_s)
     return Case(effect, truth, ident, valid)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Print a Markdown table of `diagnose` on every case and seed (the numbers in docs/identification.md)."""
+    import argparse
+    import time
+
+    from sma_stage.identify.diagnosis import diagnose
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--seeds", default="0,1,2,3,4", help="comma-separated noise seeds")
+    parser.add_argument("--effects", default=",".join(DEFAULT_EFFECTS), help="comma-separated injected effects")
+    args = parser.parse_args(argv)
+    print("| seed | injected | named | validation RMS before % | after % | noise floor % | after / floor "
+          "| parameters | CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for seed in (int(s) for s in args.seeds.split(",")):
+        for effect in args.effects.split(","):
+            case = make_case(effect, seed=seed)
+            ident, valid = case.identification, case.validation
+            started = time.process_time()
+            result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y))
+            floor = valid.noise_floor_pct
+            parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
+            print(f"| {seed} | {effect} | {result.effect} | {result.before.rms_pct:.3f} | {result.after.rms_pct:.3f} "
+                  f"| {floor:.3f} | {result.after.rms_pct / floor:.2f} | {parameters} "
+                  f"| {time.process_time() - started:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -152,7 +152,7 @@ def _candidate(fit: EffectFit, plain: EffectFit, valid: Record, before: ErrorMet
 
 
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,
-             progress: Progress = None) -> Diagnosis:
+             progress: Progress = None, output_unit: str = "m") -> Diagnosis:
     """Fit (unless base is given) on ident, test the validation residual, fit and judge every candidate
     effect, and name the one that earns its parameters ("none" if none does).
 
@@ -166,7 +166,7 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     t_v, u_v, y_v = valid_record
     if base is None:
         _report(progress, "fitting the plain GPI on the identification data")
-        base = fit_gpi(u_i, y_i, operators=operators)
+        base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
     plain = no_effect(t_i, u_i, y_i, base)
     predicted_before = predict(base, u_v)
     before = error_metrics(y_v, predicted_before)

@@ -35,6 +35,7 @@ COARSE_LOG_TOLERANCE = 5e-2  # tolerance of the thorough stage of a search (5 %)
 LAG_RANGE_FRACTION = 0.1  # largest tau or delay, as a fraction of the record's duration
 MIN_LAG_SAMPLES = 0.02  # smallest tau or delay, in sample periods
 THOROUGH_STARTS = 2  # data-derived starts of the cold fit in a thorough evaluation
+SEARCH_SAMPLES = 500  # the wide search of tau or d runs on a thinned copy of about this many samples
 NARROW_FACTOR = 1.1  # after a change of operator count, x is searched again within x / 1.1 .. 1.1 x
 RATE_GAIN_GRID = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)  # scanned c, times 1 / max |du/dt|
 RATE_GAIN_LIMIT = 100.0  # largest c, times 1 / max |du/dt|
@@ -213,24 +214,24 @@ class _Refits:
 
 def _scalar_search(cost: Callable[[float, bool], float], low: float, high: float, grid_points: int,
                    thorough: bool = True) -> float:
-    """The log x in [log low, log high] of least cost(log x, thorough): a log-spaced grid, a bounded Brent
-    search between the best grid point's neighbours to COARSE_LOG_TOLERANCE, then a quick Brent search
-    (warm starts only) around it to LOG_TOLERANCE. The GPI fit has local minima, so a wide search needs
-    thorough evaluations: a local polish alone stops where the plain GPI absorbed the effect."""
+    """The log x in [log low, log high] of least cost(log x, thorough): a log-spaced grid, then a bounded
+    Brent search between the best grid point's neighbours (to COARSE_LOG_TOLERANCE when thorough, else
+    to LOG_TOLERANCE). The GPI fit has local minima, so a wide search needs thorough evaluations: a
+    local polish alone stops where the plain GPI absorbed the effect."""
     grid = np.linspace(math.log(low), math.log(high), grid_points)
     costs = [cost(x, thorough) for x in grid]
     best = int(np.argmin(costs))
     x, fun = _brent(lambda x: cost(x, thorough), grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)],
                     COARSE_LOG_TOLERANCE if thorough else LOG_TOLERANCE)
-    if fun > costs[best]:
-        x, fun = grid[best], costs[best]
-    if thorough:
-        margin = 2.0 * COARSE_LOG_TOLERANCE
-        fine, fine_fun = _brent(lambda z: cost(z, False), max(x - margin, grid[0]), min(x + margin, grid[-1]),
-                                LOG_TOLERANCE)
-        if fine_fun < fun:
-            x = fine
-    return float(x)
+    return float(x) if fun <= costs[best] else float(grid[best])
+
+
+def _fine_search(cost: Callable[[float, bool], float], log_value: float, low: float, high: float) -> float:
+    """A quick Brent search (warm starts only) to LOG_TOLERANCE within 2 COARSE_LOG_TOLERANCE of log_value."""
+    margin = 2.0 * COARSE_LOG_TOLERANCE
+    x, fun = _brent(lambda z: cost(z, False), max(log_value - margin, math.log(low)),
+                    min(log_value + margin, math.log(high)), LOG_TOLERANCE)
+    return x if fun < cost(log_value, False) else log_value
 
 
 def _brent(cost: Callable[[float], float], left: float, right: float, tolerance: float) -> tuple[float, float]:
@@ -281,8 +282,13 @@ class InputTransformEffect(Effect):
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
             progress: Progress = None) -> EffectFit:
         started = time.perf_counter()
-        fits = _Refits(lambda x: self.transform(t, u, x), y, base)
-        value = math.exp(_scalar_search(fits.cost, *_lag_range(t), SEARCH_GRID_POINTS))
+        bounds = _lag_range(t)
+        keep = _thinned(t.size)
+        wide = _Refits(lambda x: self.transform(t[keep], u[keep], x), y[keep], base)
+        log_value = _scalar_search(wide.cost, *bounds, SEARCH_GRID_POINTS)
+        found = wide.fit(math.exp(log_value)) or base
+        fits = _Refits(lambda x: self.transform(t, u, x), y, found)
+        value = math.exp(_fine_search(fits.cost, log_value, *bounds))
         gpi = fits.fit(value, thorough=True)
         return self._finish(value, gpi, y, base.parameter_count + 1, started, progress)
 
@@ -306,6 +312,11 @@ class InputTransformEffect(Effect):
         _report(progress, f"{self.name}: {self.parameter} = {value:.4g}, {gpi.operators} operators")
         return _finish(self.name, {self.parameter: value}, gpi.parameters, gpi.operators, y, gpi.predicted,
                        parameter_count, started, lambda tv, uv: predict(gpi, self.transform(tv, uv, value)))
+
+
+def _thinned(samples: int) -> np.ndarray:
+    """Indices of an evenly thinned copy of at most about SEARCH_SAMPLES samples, for the wide search."""
+    return np.arange(0, samples, max(1, round(samples / SEARCH_SAMPLES)))
 
 
 def _lag_range(t: np.ndarray) -> tuple[float, float]:
@@ -380,7 +391,7 @@ def _creep_time_constant(t: np.ndarray, y: np.ndarray, linear: FitResult) -> flo
         return float(residual @ residual)
 
     low, high = (fraction * duration for fraction in CREEP_TAU_RANGE_FRACTION)
-    return math.exp(_scalar_search(cost, low, high, SEARCH_GRID_POINTS))
+    return math.exp(_scalar_search(cost, low, high, SEARCH_GRID_POINTS, thorough=False))
 
 
 @dataclass(frozen=True)
