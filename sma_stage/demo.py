@@ -455,5 +455,14 @@ def model_parts(out_dir: Path, model_path: Path) -> None:
         print(f"   {name:32s} {values['rms_pct']:8.3f} {values['max_pct']:8.3f}")
 
 
+def run(argv: Sequence[str] | None = None) -> int:
+    """main(), with Ctrl-C ending it quietly (status 130) once every child process has been stopped."""
+    try:
+        return main(argv)
+    except KeyboardInterrupt:
+        print("\nsma_stage.demo: interrupted; the node processes were stopped", file=sys.stderr)
+        return 130
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run())

@@ -84,10 +84,11 @@ class NodeProcess:
         return "\n".join(text.splitlines()[-lines:])
 
     def failure(self) -> str:
-        """One line saying how it ended: its own 'error:' line when it printed one."""
-        errors = [line for line in self.log_tail(50).splitlines() if line.startswith("error:")]
-        detail = errors[-1] if errors else f"see {self.log_path}"
-        return f"{self.name} exited with status {self.popen.returncode}: {detail}"
+        """One line saying how it ended: its own 'error:' line, else its last line, and where the log is."""
+        lines = [line.strip() for line in self.log_tail(50).splitlines() if line.strip()]
+        errors = [line for line in lines if line.startswith("error:")]
+        detail = errors[-1] if errors else (lines[-1] if lines else "no output")
+        return f"{self.name} exited with status {self.popen.returncode}: {detail} (log: {self.log_path})"
 
 
 class NodeProcesses:
