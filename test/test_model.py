@@ -207,3 +207,14 @@ def test_a_failed_save_leaves_the_old_file_in_place(tmp_path):
         STAGE.to_yaml(path, operators=0)
     assert path.read_text() == before
     assert [item.name for item in tmp_path.iterdir()] == ["model.yaml"]
+
+
+def test_inverse_tolerance_comes_from_the_output_span():
+    """The solver's tolerance is 1e-10 of what the output really spans over the input range, even when the
+    envelopes lie far apart (gr 1 m above gl: the output barely moves, the envelopes span a metre)."""
+    from sma_stage.model.inverse import output_span
+
+    far = STAGE.replace(a8=1.0)
+    sweep = np.concatenate([np.linspace(-5.0, 5.0, 201), np.linspace(5.0, -5.0, 201)])
+    assert output_span(far, OPERATORS, (-5.0, 5.0)) == pytest.approx(np.ptp(forward(sweep, far, OPERATORS)))
+    assert output_span(far, OPERATORS, (-5.0, 5.0)) < 1e-2

@@ -56,10 +56,14 @@ def check_input_range(params: GPIParameters, input_range: tuple[float, float] | 
 
 
 def output_span(params: GPIParameters, operators: int, input_range: tuple[float, float]) -> float:
-    """Scale of the model output over the input range [output unit], for tolerances."""
+    """The model's output range over a full input sweep [output unit], the scale of the solver's tolerance.
+
+    Taken from the output itself, not from the envelopes: envelopes that cancel (a huge a1 with an
+    opposite a4) would otherwise make the tolerance far larger than the output.
+    """
     low, high = input_range
-    envelopes = np.concatenate([params.envelope_left([low, high]), params.envelope_right([low, high])])
-    return float(abs(params.densities(operators).sum()) * np.ptp(envelopes)) or 1.0
+    sweep = np.concatenate([np.linspace(low, high, 201), np.linspace(high, low, 201)])
+    return float(np.ptp(forward(sweep, params, operators))) or 1.0
 
 
 def check_invertible(params: GPIParameters, operators: int) -> None:
