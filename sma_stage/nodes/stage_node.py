@@ -5,9 +5,11 @@ Safety: commands are clamped to +-max_current, NaN/inf commands are refused (the
 stays, but does not refresh the watchdog), the current is zeroed when no command came within
 command_timeout on the steady clock, and `~/stop` zeroes it until `~/resume`.
 
-Time: each timer tick (steady clock, every 1/rate_hz wall seconds) advances the simulator by
-time_scale/rate_hz simulated seconds. With use_sim_time the node publishes /clock from the simulated
-time and stamps joint_states with it; otherwise the stamps come from the node clock.
+Time: a timer ticks every 1/rate_hz wall seconds (steady clock). With use_sim_time each tick advances
+the simulator by exactly time_scale/rate_hz simulated seconds, publishes /clock from the simulated time
+and stamps joint_states with it. Otherwise the stamps come from the node clock and each tick advances
+the simulator by the steady-clock time since the previous tick times time_scale (at most
+MAX_CATCH_UP_STEPS periods), so simulated time keeps pace with the stamps when the machine is busy.
 """
 
 from __future__ import annotations
@@ -74,6 +76,9 @@ def check_backend(name: str) -> str:
     return name
 
 
+MAX_CATCH_UP_STEPS = 5
+
+
 class StageNode(Node):
     """The stage: a current command in, the stage position out, with clamping and a watchdog."""
 
@@ -88,7 +93,8 @@ class StageNode(Node):
         effects = Effects(**{item.name: values[item.name] for item in fields(Effects)})
         self.simulator = StageSimulator(StageConfig(), effects, seed=int(values["seed"]))
         self.rate_hz = float(values["rate_hz"])
-        self.sim_dt_s = float(values["time_scale"]) / self.rate_hz
+        self.time_scale = float(values["time_scale"])
+        self.sim_dt_s = self.time_scale / self.rate_hz
         self.use_sim_time = bool(self.get_parameter("use_sim_time").value)
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.command_a = 0.0
@@ -100,6 +106,7 @@ class StageNode(Node):
         self.rejected_count = 0
         self._last_warning: dict[str, Time] = {}
         self.state = self.simulator.state
+        self._last_tick: Time | None = None
 
         self.joint_pub = self.create_publisher(JointState, "joint_states", STATE_PUBLISH_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -164,10 +171,23 @@ class StageNode(Node):
         limit = self.max_current
         return min(max(self.command_a, -limit), limit)
 
+    def step_length_s(self) -> float:
+        """Simulated seconds for this tick: a fixed step on simulated time; on wall time the steady-clock
+        time since the last tick times time_scale (at most MAX_CATCH_UP_STEPS steps), so a tick that came
+        late does not leave the simulation behind the stamps."""
+        if self.use_sim_time:
+            return self.sim_dt_s
+        now = self.steady.now()
+        elapsed_s = 1.0 / self.rate_hz if self._last_tick is None else (now - self._last_tick).nanoseconds * 1e-9
+        self._last_tick = now
+        return min(max(elapsed_s, 0.0), MAX_CATCH_UP_STEPS / self.rate_hz) * self.time_scale
+
     def on_tick(self) -> None:
         """Advance the simulator one step and publish joint_states (and /clock with use_sim_time)."""
         self.applied_a = self.current_to_apply()
-        self.state = self.simulator.step(self.applied_a, self.sim_dt_s)
+        step_s = self.step_length_s()
+        if step_s > 0.0:
+            self.state = self.simulator.step(self.applied_a, step_s)
         stamp = self.stamp()
         if self.clock_pub is not None:
             self.clock_pub.publish(ClockMessage(clock=stamp))
