@@ -12,7 +12,7 @@ import time
 import numpy as np
 from scipy.optimize import least_squares
 
-from sma_stage.identify.fit import fit_gpi
+from sma_stage.identify.fit import fit_gpi, normalized
 from sma_stage.identify.initial_guess import initial_guess
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.model import GPIParameters, forward
@@ -54,11 +54,17 @@ def plain_fit(u: np.ndarray, y: np.ndarray, start: GPIParameters) -> tuple[np.nd
     return solution.x, int(solution.nfev)
 
 
+def largest_scale(params: GPIParameters, y: np.ndarray) -> float:
+    """Largest of the normalised a1, a5 and largest threshold, in output spans (fit_gpi keeps it <= 1e3)."""
+    params = normalized(params, OPERATORS)
+    return max(abs(params.a1), abs(params.a5), params.a9 * (OPERATORS - 1)) / float(np.ptp(y))
+
+
 def row(name: str, samples: int, seconds: float, iterations: str, u: np.ndarray, y: np.ndarray,
-        predicted: np.ndarray) -> str:
+        predicted: np.ndarray, params: GPIParameters) -> str:
     metrics = error_metrics(y, predicted)
     return (f"| {name} | {samples} | {seconds:.3f} | {iterations} | {metrics.rms_pct:.4f} | "
-            f"{metrics.max_pct:.4f} |")
+            f"{metrics.max_pct:.4f} | {largest_scale(params, y):.3g} |")
 
 
 def main() -> None:
@@ -73,14 +79,15 @@ def main() -> None:
 
     print(f"GPI fit benchmark, {OPERATORS} operators, noise {NOISE:g} m, warm-up (numba load/compile) "
           f"{warm_up:.2f} s")
-    print("| fit | samples | seconds | iterations, all starts (plain: evaluations) | RMS % | max % |")
-    print("|---|---|---|---|---|---|")
+    print("| fit | samples | seconds | iterations, all starts (plain: evaluations) | RMS % | max % | "
+          "largest scale [spans] |")
+    print("|---|---|---|---|---|---|---|")
     u, y = data(args.samples)
     clock = time.perf_counter()
     result = fit_gpi(u, y, operators=OPERATORS)
     seconds = time.perf_counter() - clock
     print(row("fit_gpi, data-derived multi-start", u.size, seconds, str(result.iterations), u, y,
-              result.predicted))
+              result.predicted, result.parameters))
 
     u, y = data(args.plain_samples, seed=1)
     start = initial_guess(u, y, OPERATORS)
@@ -88,17 +95,17 @@ def main() -> None:
     single = fit_gpi(u, y, operators=OPERATORS, initial=start)
     single_seconds = time.perf_counter() - clock
     print(row("fit_gpi from the data-derived guess (one start)", u.size, single_seconds, str(single.iterations),
-              u, y, single.predicted))
+              u, y, single.predicted, single.parameters))
     clock = time.perf_counter()
     multi = fit_gpi(u, y, operators=OPERATORS)
     multi_seconds = time.perf_counter() - clock
     print(row("fit_gpi, data-derived multi-start", u.size, multi_seconds, str(multi.iterations), u, y,
-              multi.predicted))
+              multi.predicted, multi.parameters))
     clock = time.perf_counter()
     theta, evaluations = plain_fit(u, y, start)
     plain_seconds = time.perf_counter() - clock
     print(row("plain least_squares, finite differences, from the same guess", u.size, plain_seconds,
-              f"({evaluations})", u, y, plain_forward(u, theta, OPERATORS)))
+              f"({evaluations})", u, y, plain_forward(u, theta, OPERATORS), GPIParameters.from_array(theta)))
     print(f"\nspeed-up on {u.size} samples: {plain_seconds / single_seconds:.0f}x from the same start; "
           f"{plain_seconds / multi_seconds:.0f}x for the whole multi-start fit against one plain start")
 

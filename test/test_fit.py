@@ -1,5 +1,6 @@
 """GPI fit: parameter recovery, standard errors, the paper's procedure, the analytic Jacobian,
-regressors (offset, drift) and refused input."""
+regressors (offset, drift), refused input, and well-scaled parameters on data that once drove the fit
+to envelopes computed by cancellation."""
 
 import math
 
@@ -7,15 +8,19 @@ import numpy as np
 import pytest
 
 from sma_stage.errors import InputError
+from sma_stage.identify import fit as fit_module
 from sma_stage.identify.fit import (
+    SCALE_LIMIT,
     FitResult,
     fit_gpi,
     information_criterion,
     model_jacobian,
     normalized,
     predict,
+    scale_problems,
 )
-from sma_stage.model import GPIParameters, forward
+from sma_stage.model import GPIParameters, forward, inverse
+from sma_stage.plant import simulate
 from sma_stage.signals import paper_identification_signal, paper_validation_signal
 
 OPERATORS = 10
@@ -186,3 +191,81 @@ def test_bad_options_are_refused():
                     {"initial": {"a1": 1.0}}):
         with pytest.raises(InputError):
             fit_gpi(u, y, **options)
+
+
+def exponential_data():
+    """0.1 mm exp(u [A]) on the paper's decaying sine: the exponential tail of a saturated tanh, which an
+    unbounded fit reaches only as a1 and -a4 grow without end (a1 was 1e7 output spans with one operator)."""
+    u = paper_identification_signal(np.linspace(0.0, 1000.0, 1001))
+    return u, 1e-4 * np.exp(u)
+
+
+def nearly_linear_data():
+    """A straight line with 0.01 % noise (a5 was 4e3 output spans with five operators)."""
+    u = paper_identification_signal(np.linspace(0.0, 1000.0, 1001))
+    return u, 1e-4 * u + np.random.default_rng(0).normal(0.0, 1e-7, u.size)
+
+
+def stage_simulator_data():
+    """The stage simulator on the paper's identification signal, 750 s at 1 s steps, as the node's refit sees
+    it (with the simulator as of commit cae2403 this fit gave a1 = 1.4e7 output spans)."""
+    u = paper_identification_signal(np.arange(0.0, 750.0, 1.0))
+    return u, simulate(u, 1.0, seed=0).measured_position_m
+
+
+@pytest.mark.parametrize("make_data, operators, max_rms_pct", [
+    (exponential_data, 1, 0.01), (exponential_data, 5, 0.01), (nearly_linear_data, 5, 0.05),
+    (stage_simulator_data, 10, 25.0),
+])
+def test_parameters_stay_well_scaled_and_the_exact_inverse_reproduces_the_fit(make_data, operators,
+                                                                               max_rms_pct):
+    u, y = make_data()
+    result = fit_gpi(u, y, operators=operators)
+    params, span = result.parameters, np.ptp(y)
+    assert max(abs(params.a1), abs(params.a5), params.a9 * (operators - 1)) <= SCALE_LIMIT * span * (1 + 1e-9)
+    assert scale_problems(params, operators, y) == []
+    assert result.identification.rms_pct < max_rms_pct
+    inputs = inverse(result.predicted, params, operators, input_range=(-5.0, 5.0))
+    assert np.max(np.abs(forward(inputs, params, operators) - result.predicted)) <= 1e-6 * span
+
+
+def test_scale_problems_name_envelopes_computed_by_cancellation():
+    _, _, y = identification_data(samples=201)
+    assert scale_problems(TRUTH, OPERATORS, y) == []
+    seen = TRUTH.replace(a1=1.1e11, a4=-1.1e11, a9=1.0e11 / (OPERATORS - 1))  # the refit seen in the demo
+    problems = " ".join(scale_problems(seen, OPERATORS, y))
+    assert "a1 is" in problems and "a4 is" in problems and "a9*(n-1) is" in problems
+    assert "a5 is" not in problems and "a8 is" not in problems
+
+
+def test_badly_scaled_counts_are_passed_over_and_refused_when_none_is_left(monkeypatch):
+    _, u, y = identification_data(samples=1201)
+    checked = scale_problems
+    monkeypatch.setattr(fit_module, "scale_problems",
+                        lambda params, operators, data: ["refused here"] if operators == OPERATORS
+                        else checked(params, operators, data))
+    result = fit_gpi(u, y)
+    assert result.operators != OPERATORS
+    assert f"Refused as badly scaled: {OPERATORS} operators: refused here" in result.message
+    monkeypatch.setattr(fit_module, "scale_problems", checked)
+    monkeypatch.setattr(fit_module, "OFFSET_LIMIT", 1e-3)
+    with pytest.raises(InputError, match="no well-scaled GPI parameters.*a4 is"):
+        fit_gpi(u, y, operators=OPERATORS)
+
+
+def test_projected_gradient_matches_central_differences_with_the_scale_at_its_bound(monkeypatch):
+    _, u, y = identification_data(samples=401)
+    start = RAW_TRUTH.replace(a2=0.6, a5=0.55e-3, a8=0.6e-3, a9=0.015e-3)
+    monkeypatch.setattr(fit_module, "SCALE_LIMIT", 0.5)
+    for regressors in (np.zeros((u.size, 0)), np.linspace(0.0, 1.0, u.size)[:, None]):
+        problem, a1, x, *_ = fit_module._setup(u, y, regressors, OPERATORS, start)
+        residual = problem.fun(x)
+        gradient = 2.0 * problem.jac(x).T @ residual
+        limit, _ = fit_module._scale_limit(a1, x, OPERATORS, problem.span)
+        assert problem.coefficients[-1] == pytest.approx(limit, rel=1e-12)
+        for j in range(x.size):
+            step = np.zeros_like(x)
+            step[j] = 1e-6 * abs(x[j])
+            up, down = problem.fun(x + step), problem.fun(x - step)
+            difference = (up @ up - down @ down) / (2 * step[j])
+            assert gradient[j] == pytest.approx(difference, rel=1e-4)

@@ -1,12 +1,20 @@
 """GPI identification: bounded nonlinear least squares (trust-region reflective, the paper's lsqnonlin)
 with an analytic Jacobian and variable projection of the linear parameters.
 
-The output is linear in the density scale a10 and in any extra regressor columns, so those are solved
-by linear least squares at every step and the search runs over the nonlinear parameters only
-(Kaufman's approximation of the projected Jacobian). The model has one exact scale symmetry:
-multiplying a1, a4, a5, a8, a9 by s and dividing a10, a11 by s leaves the output unchanged. The search
-holds a1 fixed to remove it, and the result is reported in the normalised form where the densities
-sum to 1 (so the envelopes are in the output's unit and scale), see `normalized`.
+The model has one exact scale symmetry: multiplying a1, a4, a5, a8, a9 by s and dividing a10, a11 by s
+leaves the output unchanged. The search holds a1 fixed to remove it, and the result is reported in the
+normalised form where the densities sum to 1 (so the envelopes are in the output's unit and scale), see
+`normalized`. The output is linear in that normalised scale s and in any extra regressor columns, so
+those are solved by linear least squares at every step and the search runs over the nonlinear
+parameters only (Kaufman's approximation of the projected Jacobian).
+
+The scale is bounded: s (a1 + a5 + a9 (n - 1)) <= SCALE_LIMIT output spans. Without the bound, data
+that the exponential tail of a saturated tanh (or a nearly flat tanh) fits slightly better drove a1 and
+a4 to huge opposite values (a1 = 1.1e11 on a 1 mm stroke was seen): the same output, but computed by a
+cancellation that leaves rounding noise in it and extrapolates absurdly over the input range. With the
+bound such shapes are fitted with tanh arguments a few units nearer zero, at a cost in error of order
+exp(-2 x), x the argument given up. fit_gpi refuses (InputError) a result whose normalised parameters
+still exceed the limits of scale_problems.
 """
 
 from __future__ import annotations
@@ -43,6 +51,9 @@ NULL_TOLERANCE = 1e-10  # singular values of the column-scaled Jacobian below th
 FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11*a9")
 DECAY_LIMITS = (-3.0, 30.0)  # bounds of a11 * largest threshold: the last weight is e^3 .. e^-30 of the first
 _FREE_COLUMNS = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # their columns among the sensitivities (a1..a9, a11)
+SCALE_LIMIT = 1e3  # normalised a1, a5 and largest threshold: at most this many output spans each
+OFFSET_LIMIT = 2 * SCALE_LIMIT  # |a4|, |a8| from the output's mid-range, in output spans (an active
+# envelope lies within a1 (or a5) plus the largest threshold of the output)
 
 
 @dataclass(frozen=True)
@@ -179,14 +190,16 @@ def check_data(u: np.ndarray, y: np.ndarray, regressors: np.ndarray | None = Non
 class _Projected:
     """The variable-projection problem over the free parameters, QR-compressed.
 
-    One Householder QR of [regressors, s, ds/d(free), y] gives the linear coefficients (a10 >= 0, c),
-    the projected residual and Kaufman's Jacobian P_perp a10 ds/dθ in the same orthonormal basis, so
-    TRF works on a 10-row problem with the same cost, gradient and Gauss-Newton model as the N-row one.
+    One Householder QR of [regressors, Ŝ, dŜ/d(free), y] (y ~ s Ŝ + regressors c, Ŝ the output with
+    densities summing to 1) gives the linear coefficients (c, 0 <= s <= _scale_limit), the projected
+    residual and Kaufman's Jacobian P_perp s dŜ/dθ in the same orthonormal basis, so TRF works on an
+    11-row problem with the same cost, gradient and Gauss-Newton model as the N-row one.
     """
 
     def __init__(self, v: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, a1: float,
-                 progress: Callable[[str], None] | None = None):
+                 span: float, progress: Callable[[str], None] | None = None):
         self.v, self.y, self.regressors, self.operators, self.a1 = v, y, regressors, operators, a1
+        self.span = span
         self.progress, self._reported = progress, time.perf_counter()
         m = regressors.shape[1]
         self._rows = np.empty((m + 2 + SENSITIVITY_COLUMNS, v.size))
@@ -203,16 +216,11 @@ class _Projected:
         rows = self._rows
         rows[:m] = self.regressors.T
         _sensitivities(self.v, _theta(self.a1, x), self.operators, out=rows[m:m + 1 + SENSITIVITY_COLUMNS])
-        a9_row, a11_row = m + 9, m + 10  # to d/d(a9) at fixed a11*a9 and d/d(a11*a9)
-        rows[a9_row] -= rows[a11_row] * (x[8] / x[7] ** 2)
-        rows[a11_row] /= x[7]
+        _to_normalised_rows(rows[m:m + 1 + SENSITIVITY_COLUMNS], x, self.operators)
         rows[-1] = self.y
         r = householder_r(rows, self._order)
-        linear = m + 1
-        coefficients, first = _linear_coefficients(r[:linear, :linear], r[:linear, -1])
-        self.coefficients = coefficients
-        self.residual = -r[first:, -1]
-        self.jacobian = coefficients[-1] * r[first:, linear:-1]
+        limit, limit_gradient = _scale_limit(self.a1, x, self.operators, self.span)
+        self.coefficients, self.residual, self.jacobian = _projection(r, m, limit, limit_gradient)
         self._x = x.copy()
         if self.progress is not None and time.perf_counter() - self._reported >= PROGRESS_INTERVAL_S:
             self._reported = time.perf_counter()
@@ -233,21 +241,61 @@ def _theta(a1: float, x: np.ndarray, a10: float = 1.0) -> np.ndarray:
     return np.concatenate([[a1], x[:8], [a10, x[8] / x[7]]])
 
 
-def _linear_coefficients(triangle: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
-    """Least squares [c, a10] from the R factor with a10 >= 0 (one bound: if the unconstrained a10 is
-    negative the bound is active at the optimum); also the first row of the residual's subspace."""
+def _to_normalised_rows(rows: np.ndarray, x: np.ndarray, operators: int) -> None:
+    """Rows (S, dS/d(a1..a9), dS/d(a11)) at fixed a11, S = sum_i w_i z_i, in place to (Ŝ, dŜ/d(a1..a8),
+    dŜ/d(a9) at fixed d, dŜ/dd) with Ŝ = S / sum_i w_i and d = a11*a9: the output is then s Ŝ, s the
+    normalised scale (what a1, a4, a5, a8, a9 are multiplied by when the densities are made to sum 1)."""
+    a9, decay = x[7], x[8]
+    rows[9] -= rows[10] * (decay / a9**2)
+    rows[10] /= a9
+    indices = np.arange(operators)
+    weights = np.exp(-decay * indices)
+    total = weights.sum()
+    rows /= total
+    rows[10] += rows[0] * (indices @ weights / total)
+
+
+def _scale_limit(a1: float, x: np.ndarray, operators: int, span: float) -> tuple[float, np.ndarray]:
+    """Largest normalised scale s allowed, SCALE_LIMIT * span / (a1 + a5 + a9 (n - 1)), so that s times
+    each of them stays within SCALE_LIMIT output spans; and its gradient over the searched parameters."""
+    steps = operators - 1
+    size = a1 + x[3] + x[7] * steps
+    limit = SCALE_LIMIT * span / size
+    gradient = np.zeros(x.size)
+    gradient[3] = -limit / size
+    gradient[7] = -limit * steps / size
+    return limit, gradient
+
+
+def _projection(r: np.ndarray, m: int, limit: float, limit_gradient: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """From the R factor of [regressors (m), Ŝ, dŜ/d(searched), y]: the linear coefficients [c, s] with
+    0 <= s <= limit, the residual (model - data) and its Jacobian, both in the basis orthogonal to the
+    regressors. With s inside its bounds the Jacobian is Kaufman's (zero along Ŝ, whose coefficient
+    follows); with s at limit it carries d limit/dθ."""
+    linear = m + 1
+    triangle, rhs = r[:linear, :linear], r[:linear, -1]
     diagonal = np.abs(np.diag(triangle))
     if diagonal.min() > 1e-12 * diagonal.max():
         coefficients = np.linalg.solve(triangle, rhs)
     else:
         coefficients = np.linalg.lstsq(triangle, rhs, rcond=None)[0]
-    if coefficients[-1] >= 0.0:
-        return coefficients, triangle.shape[0]
-    m = triangle.shape[0] - 1
-    constrained = np.zeros_like(coefficients)
-    if m:
-        constrained[:m] = np.linalg.lstsq(triangle[:m, :m], rhs[:m], rcond=None)[0]
-    return constrained, m
+    scale = coefficients[-1]
+    bounded = not 0.0 <= scale <= limit
+    if bounded:
+        scale = min(max(scale, 0.0), limit)
+        coefficients[-1] = scale
+        if m:
+            others = rhs[:m] - scale * triangle[:m, m]
+            coefficients[:m] = np.linalg.lstsq(triangle[:m, :m], others, rcond=None)[0]
+    shape = r[m:, m]
+    residual = scale * shape - r[m:, -1]
+    jacobian = scale * r[m:, linear:-1]
+    if not bounded:
+        jacobian[0] = 0.0
+    elif scale > 0.0:
+        jacobian += np.outer(shape, limit_gradient)
+    return coefficients, residual, jacobian
 
 
 def _bounds(u: np.ndarray, y: np.ndarray, a1: float, operators: int) -> tuple[np.ndarray, np.ndarray]:
@@ -345,7 +393,7 @@ def _setup(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
     free = np.ones(x0.size, dtype=bool)
     if operators == 1:
         free[7:] = False  # one operator: r_0 = 0 and p_0 = a10, so a9 and a11 do nothing
-    return _Projected(u, y, regressors, operators, a1, progress), a1, x0, low, high, free
+    return _Projected(u, y, regressors, operators, a1, float(np.ptp(y)), progress), a1, x0, low, high, free
 
 
 def _parameters(problem_a1: float, x: np.ndarray, a10: float, operators: int, unit: str) -> GPIParameters:
@@ -459,6 +507,10 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     start points themselves. The survey runs once (10 operators, or the given count); its best few
     starts, carried to each other count (same largest threshold; same threshold step), are converged
     on a thinned copy and the best is refined on all samples.
+
+    The normalised a1, a5 and largest threshold are held within SCALE_LIMIT output spans during the
+    search; a count whose result still fails scale_problems is passed over (the message says so), and
+    InputError is raised when every count fails.
     """
     clock = time.perf_counter()
     matrix = _check_regressors(regressors, np.size(u))
@@ -479,14 +531,18 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
         count_starts = finalists if reference is None else _carried(finalists, reference, count)
         fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress)
     costs = {count: found.cost for count, (found, _) in fits.items()}
-    chosen = _choose_count(costs)
+    searches = {count: found for count, (found, _) in fits.items()}
+    chosen, params, coefficients, refused = _well_scaled_choice(u, y, matrix, searches, output_unit)
     found = fits[chosen][0]
     iterations += sum(spent for _, spent in fits.values())
     note = found.message
     if len(costs) > 1:
         rms = ", ".join(f"{count}: {100 * math.sqrt(cost / u.size) / np.ptp(y):.4g}" for count, cost in costs.items())
         note += f" Operators chosen: {chosen} (RMS % by count {rms})."
-    return _result(u, y, matrix, chosen, found, iterations, time.perf_counter() - clock, output_unit, note)
+    if refused:
+        note += f" Refused as badly scaled: {' / '.join(refused)}."
+    return _result(u, y, matrix, chosen, found, params, coefficients, iterations, time.perf_counter() - clock,
+                   note)
 
 
 def _choose_count(costs: dict[int, float]) -> int:
@@ -495,12 +551,51 @@ def _choose_count(costs: dict[int, float]) -> int:
     return min(count for count, cost in costs.items() if math.sqrt(cost) <= (1 + OPERATOR_MARGIN) * math.sqrt(best))
 
 
-def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, found: _Search,
-            iterations: int, seconds: float, unit: str, message: str) -> FitResult:
-    problem = _Projected(u, y, regressors, operators, found.a1)
+def scale_problems(params: GPIParameters, operators: int, y: np.ndarray) -> list[str]:
+    """Why normalised parameters are too large for the output y they were fitted to (empty when they are
+    not): a1, a5 and the largest threshold beyond SCALE_LIMIT output spans, a4 or a8 beyond OFFSET_LIMIT
+    spans from the output's mid-range (where gl or gr would be computed by cancellation)."""
+    params = normalized(params, operators)
+    span = float(np.ptp(y))
+    middle = 0.5 * float(np.max(y) + np.min(y))
+    sizes = {"a1": (abs(params.a1), SCALE_LIMIT), "a5": (abs(params.a5), SCALE_LIMIT),
+             "a9*(n-1)": (params.a9 * (operators - 1), SCALE_LIMIT),
+             "a4": (abs(params.a4 - middle), OFFSET_LIMIT), "a8": (abs(params.a8 - middle), OFFSET_LIMIT)}
+    return [f"{name} is {size / span:.3g} output spans (limit {limit:g})"
+            for name, (size, limit) in sizes.items() if not size <= limit * (1.0 + 1e-9) * span]
+
+
+def _well_scaled_choice(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, fits: dict[int, _Search],
+                        unit: str) -> tuple[int, GPIParameters, np.ndarray, list[str]]:
+    """The operator count by _choose_count among the fits whose parameters pass scale_problems; its
+    normalised parameters and regressor coefficients; why the counts passed over were refused.
+    InputError when none passes."""
+    costs = {count: found.cost for count, found in fits.items()}
+    refused = []
+    while costs:
+        chosen = _choose_count(costs)
+        params, coefficients = _final_parameters(u, y, regressors, chosen, fits[chosen], unit)
+        problems = scale_problems(params, chosen, y)
+        if not problems:
+            return chosen, params, coefficients, refused
+        refused.append(f"{chosen} operators: {', '.join(problems)}")
+        del costs[chosen]
+    raise InputError(f"the fit found no well-scaled GPI parameters for these data ({' / '.join(refused)})")
+
+
+def _final_parameters(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, found: _Search,
+                      unit: str) -> tuple[GPIParameters, np.ndarray]:
+    """Normalised parameters and regressor coefficients where the search ended."""
+    problem = _Projected(u, y, regressors, operators, found.a1, float(np.ptp(y)))
     problem.fun(found.x)
-    a10, coefficients = float(problem.coefficients[-1]), problem.coefficients[:-1].copy()
-    params = _parameters(found.a1, found.x, a10, operators, unit)
+    scale, coefficients = float(problem.coefficients[-1]), problem.coefficients[:-1].copy()
+    a10 = scale / float(np.exp(-found.x[8] * np.arange(operators)).sum())
+    return _parameters(found.a1, found.x, a10, operators, unit), coefficients
+
+
+def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, found: _Search,
+            params: GPIParameters, coefficients: np.ndarray, iterations: int, seconds: float,
+            message: str) -> FitResult:
     predicted = forward(u, params, operators) + regressors @ coefficients
     residual = y - predicted
     cost = float(residual @ residual)
