@@ -2,7 +2,9 @@
 
 The plant is simulated on a time grid OVERSAMPLING times finer than the recorded one (as a
 continuous plant would run) and then sampled; Gaussian noise of known sigma [m] is added to the
-recorded output. Nothing here is shared with the identification, which is never told the effect.
+recorded output. Each record starts from an idle stage (operators at zero) whose current is switched
+on one sample period before the first recorded sample.
+Nothing here is shared with the identification, which is never told the effect.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ NOISE_SIGMA_M = 2e-6
 DEFAULT_EFFECTS: dict[str, dict[str, float]] = {
     "none": {},
     "thermal_lag": {"tau_s": 20.0},
-    "delay": {"delay_s": 5.0},
+    "delay": {"delay_s": 4.5},
     "rate": {"rate_gain_s_per_A": 5.0},
     "drift": {"drift_m_per_s": 5e-8},
 }
@@ -79,44 +81,45 @@ def play_outputs(v: np.ndarray, thresholds: np.ndarray, params: GPIParameters = 
 
 
 def first_order_lag(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
-    """v' = (u - v)/tau on a fine uniform grid (bilinear transform), starting at rest at v = u[0]."""
-    fs = 1.0 / (t[1] - t[0])
-    b, a = sps.bilinear([1.0], [tau_s, 1.0], fs)
-    filtered, _ = sps.lfilter(b, a, u, zi=sps.lfilter_zi(b, a) * u[0])
+    """v' = (u - v)/tau (scipy's lsim on the fine grid), from v = 0: the stage was idle, the current
+    steps to u[0] at t[0]."""
+    _, filtered, _ = sps.lsim(([1.0], [tau_s, 1.0]), u, t - t[0], X0=[0.0])
     return filtered
 
 
 def plant_output(t: np.ndarray, u: np.ndarray, effect: str, values: dict[str, float]) -> np.ndarray:
-    """The noise-free position [m] of the plant with the effect, on the fine grid t."""
+    """The noise-free position [m] of the plant with the effect (drift is added by `record`), on the fine
+    grid t; the stage is idle before t[0]."""
     nominal = TRUE_PARAMETERS.thresholds(TRUE_OPERATORS)
     thresholds = np.broadcast_to(nominal, (t.size, TRUE_OPERATORS))
     drive = u
     if effect == "thermal_lag":
         drive = first_order_lag(t, u, values["tau_s"])
     elif effect == "delay":
-        drive = np.interp(t - values["delay_s"], t, u)
+        drive = np.interp(t - values["delay_s"], t, u, left=0.0)
     elif effect == "rate":
         rate = np.abs(np.gradient(u, t))
         thresholds = nominal[None, :] * (1.0 + values["rate_gain_s_per_A"] * rate[:, None])
     elif effect not in ("none", "drift"):
         raise ValueError(f"unknown effect {effect!r}")
-    output = play_outputs(drive, np.ascontiguousarray(thresholds))
-    if effect == "drift":
-        output = output + values.get("drift_m_per_s", 0.0) * (t - t[0])
-        output = output + values.get("creep_m", 0.0) * (1.0 - np.exp(-(t - t[0]) / values.get("creep_tau_s", 1.0)))
-    return output
+    return play_outputs(drive, np.ascontiguousarray(thresholds))
 
 
 def record(input_signal, effect: str, values: dict[str, float], rng: np.random.Generator,
            noise_sigma_m: float, sample_period_s: float, duration_s: float) -> Record:
-    """Simulate finely, sample every sample_period_s, add noise."""
-    fine_t = np.arange(0.0, duration_s + 1e-9, sample_period_s / OVERSAMPLING)
-    fine_u = input_signal(fine_t)
+    """Simulate finely from an idle stage whose current is switched on one sample period before the
+    first recorded sample (held at its first value until then, as a zero-order-hold source delivers
+    it), sample every sample_period_s from t = 0, add noise."""
+    fine_t = np.arange(-sample_period_s, duration_s + 1e-9, sample_period_s / OVERSAMPLING)
+    fine_u = input_signal(np.maximum(fine_t, 0.0))
     fine_y = plant_output(fine_t, fine_u, effect, values)
-    pick = slice(None, None, OVERSAMPLING)
-    clean = fine_y[pick]
+    pick = slice(OVERSAMPLING, None, OVERSAMPLING)
+    t, clean = fine_t[pick].copy(), fine_y[pick].copy()
+    if effect == "drift":
+        clean += values.get("drift_m_per_s", 0.0) * t
+        clean += values.get("creep_m", 0.0) * (1.0 - np.exp(-t / values.get("creep_tau_s", 1.0)))
     noisy = clean + rng.normal(0.0, noise_sigma_m, clean.size)
-    return Record(fine_t[pick].copy(), fine_u[pick].copy(), noisy, clean, noise_sigma_m)
+    return Record(t, fine_u[pick].copy(), noisy, clean, noise_sigma_m)
 
 
 def make_case(effect: str, seed: int = 0, noise_sigma_m: float = NOISE_SIGMA_M,
@@ -142,8 +145,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--effects", default=",".join(DEFAULT_EFFECTS), help="comma-separated injected effects")
     args = parser.parse_args(argv)
     print("| seed | injected | named | validation RMS before % | after % | noise floor % | after / floor "
-          "| parameters | CPU s |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| parameters | operators | CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for seed in (int(s) for s in args.seeds.split(",")):
         for effect in args.effects.split(","):
             case = make_case(effect, seed=seed)
@@ -154,6 +157,7 @@ def main(argv: list[str] | None = None) -> None:
             parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
             print(f"| {seed} | {effect} | {result.effect} | {result.before.rms_pct:.3f} | {result.after.rms_pct:.3f} "
                   f"| {floor:.3f} | {result.after.rms_pct / floor:.2f} | {parameters} "
+                  f"| {result.base.operators} -> {result.chosen.operators} "
                   f"| {time.process_time() - started:.1f} |", flush=True)
 
 

@@ -10,7 +10,14 @@ from synthetic import TRUE_OPERATORS, TRUE_PARAMETERS, make_case
 
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import diagnose
-from sma_stage.identify.effects import EFFECT_NAMES, delayed_input, input_rate, lagged_input, rate_forward
+from sma_stage.identify.effects import (
+    EFFECT_NAMES,
+    delayed_input,
+    input_rate,
+    lagged_input,
+    rate_forward,
+    rate_model_output,
+)
 from sma_stage.identify.residual_tests import TEST_NAMES, residual_tests
 from sma_stage.model import forward
 
@@ -157,13 +164,23 @@ def test_lagged_input_solves_the_first_order_lag():
     assert np.max(np.abs(lagged_input(t, u, tau) - exact)) < 1e-4
 
 
-def test_delayed_input_is_exact_on_a_ramp_and_holds_the_first_sample():
+def test_delayed_input_is_exact_on_a_ramp_and_starts_idle():
+    """The current is switched on one sample period (0.5 s) before the first sample, held at u[0]."""
     t = np.arange(0.0, 50.0, 0.5)
     u = 0.2 * t + 1.0
     shifted = delayed_input(t, u, 3.3)
-    late = t >= 3.3
+    late, held, idle = t >= 3.3, (t >= 2.8) & (t < 3.3), t < 2.8
     assert np.allclose(shifted[late], 0.2 * (t[late] - 3.3) + 1.0)
-    assert np.all(shifted[~late] == u[0])
+    assert np.all(shifted[held] == u[0])
+    assert np.all(shifted[idle] == 0.0)
+    assert np.allclose(delayed_input(t, u, 1e-9), u, rtol=0, atol=1e-9)  # no delay, no start-up effect
+
+
+def test_lagged_input_starts_from_an_idle_stage():
+    t = np.arange(0.0, 100.0, 0.5)
+    step = lagged_input(t, np.full(t.size, 2.0), 10.0)
+    assert np.allclose(step, 2.0 * (1.0 - np.exp(-(t + 0.5) / 10.0)))
+    assert np.allclose(lagged_input(t, np.sin(t / 10.0) + 1.0, 1e-6), np.sin(t / 10.0) + 1.0, atol=1e-6)
 
 
 def test_rate_model_without_rate_gain_is_the_gpi():
@@ -187,6 +204,34 @@ def test_effect_models_reproduce_the_independent_plant_simulation(effect):
         t, u = record.t, record.u
         drive = {"thermal_lag": lagged_input(t, u, value) if effect == "thermal_lag" else u,
                  "delay": delayed_input(t, u, value)}.get(effect, u)
-        model = (rate_forward(u, input_rate(t, u), TRUE_PARAMETERS, TRUE_OPERATORS, value) if effect == "rate"
+        model = (rate_model_output(t, u, TRUE_PARAMETERS, TRUE_OPERATORS, value) if effect == "rate"
                  else forward(drive, TRUE_PARAMETERS, TRUE_OPERATORS))
         assert np.sqrt(np.mean((model - record.clean) ** 2)) < 0.5 * record.noise_sigma_m
+
+
+def test_a_candidate_that_cannot_be_fitted_is_reported_not_fatal(monkeypatch):
+    import sma_stage.identify.diagnosis as diagnosis_module
+
+    real_fit_effect = diagnosis_module.fit_effect
+
+    def failing_rate(name, *args, **kwargs):
+        if name == "rate":
+            raise InputError("rate: the GPI cannot be fitted")
+        return real_fit_effect(name, *args, **kwargs)
+
+    monkeypatch.setattr(diagnosis_module, "fit_effect", failing_rate)
+    case = make_case("drift", seed=SEED, duration_s=300.0)
+    ident, valid = case.identification, case.validation
+    result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y))
+    assert result.effect == "drift"
+    assert "rate" not in {c.effect for c in result.candidates}
+    assert result.to_dict()["not_fitted"] == {"rate": "rate: the GPI cannot be fitted"}
+
+
+def test_residual_tests_serialise_to_json():
+    t, u = smooth_input(300, seed=8)
+    tests = residual_tests(np.random.default_rng(9).normal(0.0, 1e-6, t.size) + 1e-9 * t, u, t)
+    document = json.loads(json.dumps(tests.to_dict()))
+    assert set(document) == set(TEST_NAMES)
+    assert all(isinstance(entry["passed"], bool) for entry in document.values())
+    assert document["lagged_input"]["threshold"] > document["input"]["threshold"]

@@ -76,7 +76,8 @@ class CandidateResult:
 class Diagnosis:
     """The outcome: the effect named ("none" or one of EFFECT_NAMES), the test evidence on the plain
     GPI's validation residual, the effect's parameters, validation errors before and after, every
-    candidate, and the series behind them (for plots)."""
+    candidate (those that could not be fitted under `failures`, with the reason), and the series
+    behind them (for plots)."""
 
     effect: str
     evidence: dict[str, str]
@@ -90,6 +91,7 @@ class Diagnosis:
     candidates: list[CandidateResult]
     validation_predicted_before: np.ndarray = field(repr=False)
     validation_predicted_after: np.ndarray = field(repr=False)
+    failures: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
 
     def to_dict(self) -> dict[str, object]:
@@ -101,6 +103,7 @@ class Diagnosis:
             "before": {"validation": _errors(self.before)},
             "after": {"validation": _errors(self.after)},
             "candidates": [candidate.to_dict() for candidate in self.candidates],
+            **({"not_fitted": dict(self.failures)} if self.failures else {}),
         }
 
 
@@ -174,16 +177,25 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     failed = [name for name, check in tests_before.checks.items() if not check.passed]
     _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
-    candidates = []
+    candidates, failures = [], {}
     for name in rank_candidates(tests_before):
         _report(progress, f"fitting candidate {name}")
-        fit = fit_effect(name, t_i, u_i, y_i, base, progress)
+        try:
+            fit = fit_effect(name, t_i, u_i, y_i, base, progress)
+        except InputError as error:
+            failures[name] = str(error)
+            _report(progress, f"{name}: not fitted: {error}")
+            continue
         candidates.append(_candidate(fit, plain, valid_record, before, fit.seconds))
         _report(progress, f"{name}: {candidates[-1].reason}")
     if operators is None:
         leaders = sorted((c for c in candidates if c.accepted), key=lambda c: c.validation.rms_pct)[:RECOUNTED]
         for leader in leaders:
-            fit = recount_effect(leader.fit, t_i, u_i, y_i, progress)
+            try:
+                fit = recount_effect(leader.fit, t_i, u_i, y_i, progress)
+            except InputError as error:
+                _report(progress, f"{leader.effect}: operator count kept: {error}")
+                continue
             if fit is not leader.fit:
                 candidates[candidates.index(leader)] = _candidate(fit, plain, valid_record, before,
                                                                   leader.seconds + fit.seconds)
@@ -204,6 +216,7 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         candidates=candidates,
         validation_predicted_before=predicted_before,
         validation_predicted_after=predicted_after,
+        failures=failures,
         seconds=time.perf_counter() - started,
     )
 

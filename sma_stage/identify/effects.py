@@ -8,8 +8,9 @@
 
 Every effect has `fit(t, u, y, base)` (at the base fit's operator count) and `recount(fit, t, u, y)`
 (the operator count chosen again, by fit_gpi's rule, for the model with the effect). Time t is in s
-(or samples for quasi-static data), u in A, y in the output unit (m). Filter and delay start at rest
-(the input held at its first sample before the record), operator states at zero, as in the model core.
+(or samples for quasi-static data), u in A, y in the output unit (m). Every record starts from an idle
+stage: the current switched on one sample period before the first sample (zero before; the filter
+state and the delay line at zero) and the operator states at zero, as in the model core.
 """
 
 from __future__ import annotations
@@ -95,23 +96,35 @@ def check_record(t: np.ndarray, u: np.ndarray, y: np.ndarray | None = None) -> t
 
 @numba.njit(cache=True, nogil=True)
 def _lag_recursion(t: np.ndarray, u: np.ndarray, tau: float, out: np.ndarray) -> None:
-    out[0] = u[0]
+    out[0] = 0.0
     for k in range(1, t.size):
         h = t[k] - t[k - 1]
         slope = (u[k] - u[k - 1]) / h
         out[k] = u[k] - slope * tau + (out[k - 1] - u[k - 1] + slope * tau) * math.exp(-h / tau)
 
 
+def idle_start(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(t, u) extended by the moment the record's current was switched on: one sample period before
+    the first sample, held at u[0] over that period (as a zero-order-hold source delivers it), zero
+    before."""
+    step = t[1] - t[0]
+    return np.concatenate(([t[0] - step], t)), np.concatenate(([u[0]], u))
+
+
 def lagged_input(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
-    """v with tau v' = u - v [A], exact for u linear between samples, starting at rest (v = u[0])."""
-    out = np.empty_like(u)
-    _lag_recursion(t, u, float(tau_s), out)
-    return out
+    """v with tau v' = u - v [A] from an idle stage (v = 0 when the current was switched on, see
+    idle_start), exact for u linear between samples."""
+    times, currents = idle_start(t, u)
+    out = np.empty_like(currents)
+    _lag_recursion(times, currents, float(tau_s), out)
+    return out[1:]
 
 
 def delayed_input(t: np.ndarray, u: np.ndarray, delay_s: float) -> np.ndarray:
-    """u(t - d) [A], linear between samples, held at u[0] before the first sample."""
-    return np.interp(t - delay_s, t, u)
+    """u(t - d) [A], linear between samples, from an idle stage (zero before the current was switched
+    on, see idle_start)."""
+    times, currents = idle_start(t, u)
+    return np.interp(t - delay_s, times, currents, left=0.0)
 
 
 def input_rate(t: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -143,6 +156,14 @@ def _rate_output(u: np.ndarray, rate: np.ndarray, theta: np.ndarray, operators: 
             states[i] = z
             total += weights[i] * z
         out[k] = total
+
+
+def rate_model_output(t: np.ndarray, u: np.ndarray, params: GPIParameters, operators: int,
+                      gain_s_per_A: float) -> np.ndarray:
+    """The rate model's output [output unit] for a record (t [s], u [A]) from an idle stage (see
+    idle_start: the operators start with the current switched on and still, at the nominal thresholds)."""
+    times, currents = idle_start(t, u)
+    return rate_forward(currents, input_rate(times, currents), params, operators, gain_s_per_A)[1:]
 
 
 def rate_forward(u: np.ndarray, rate: np.ndarray, params: GPIParameters, operators: int,
@@ -307,8 +328,10 @@ class InputTransformEffect(Effect):
         value = math.exp(_scalar_search(fits.cost, *narrow, 3, thorough=False))
         return self._finish(value, fits.fit(value, thorough=True), y, fit.parameter_count, started, progress)
 
-    def _finish(self, value: float, gpi: FitResult, y: np.ndarray, parameter_count: int, started: float,
+    def _finish(self, value: float, gpi: FitResult | None, y: np.ndarray, parameter_count: int, started: float,
                 progress: Progress) -> EffectFit:
+        if gpi is None:
+            raise InputError(f"{self.name}: the GPI cannot be fitted at {self.parameter} = {value:.4g}")
         _report(progress, f"{self.name}: {self.parameter} = {value:.4g}, {gpi.operators} operators")
         return _finish(self.name, {self.parameter: value}, gpi.parameters, gpi.operators, y, gpi.predicted,
                        parameter_count, started, lambda tv, uv: predict(gpi, self.transform(tv, uv, value)))
@@ -411,19 +434,21 @@ class RateEffect(Effect):
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
             progress: Progress = None) -> EffectFit:
         started = time.perf_counter()
-        found = _rate_fit(u, input_rate(t, u), y, base.parameters, base.operators)
+        times, currents = idle_start(t, u)
+        found = _rate_fit(currents, input_rate(times, currents), y, base.parameters, base.operators)
         return self._finish(found, t, u, y, base.parameter_count + 1, started, progress)
 
     def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
                 progress: Progress = None) -> EffectFit:
         """Refit from a plain GPI fit of every other candidate operator count; keep the rule's choice."""
         started = time.perf_counter()
-        rate, unit = input_rate(t, u), fit.gpi_parameters.output_unit
+        times, currents = idle_start(t, u)
+        rate, unit = input_rate(times, currents), fit.gpi_parameters.output_unit
         fits: list = [fit]
         for count in OPERATOR_CANDIDATES:
             start = None if count == fit.operators else _fit_or_none(u, y, count, None, unit, None, THOROUGH_STARTS)
             if start is not None:
-                fits.append(_rate_fit(u, rate, y, start.parameters, count))
+                fits.append(_rate_fit(currents, rate, y, start.parameters, count))
         chosen = _pick(fits)
         if chosen is fit:
             return fit
@@ -434,13 +459,14 @@ class RateEffect(Effect):
         params, operators, gain = found.params, found.operators, found.gain
         _report(progress, f"rate: rate_gain_s_per_A = {gain:.4g}, {operators} operators")
         return _finish(self.name, {"rate_gain_s_per_A": gain}, params, operators, y,
-                       rate_forward(u, input_rate(t, u), params, operators, gain), parameter_count, started,
-                       lambda tv, uv: rate_forward(uv, input_rate(tv, uv), params, operators, gain))
+                       rate_model_output(t, u, params, operators, gain), parameter_count, started,
+                       lambda tv, uv: rate_model_output(tv, uv, params, operators, gain))
 
 
 def _rate_fit(u: np.ndarray, rate: np.ndarray, y: np.ndarray, start_params: GPIParameters,
               operators: int) -> _RateFit:
-    """The rate model fitted from a GPI start: a scan of c with the GPI held, then everything together."""
+    """The rate model fitted from a GPI start: a scan of c with the GPI held, then everything together.
+    u and rate [A, A/s] carry the idle-start sample ahead of y's first (see idle_start)."""
     scale = 1.0 / max(float(np.max(rate)), np.finfo(float).tiny)
     start = start_params.as_array()
     grid = [factor * scale for factor in RATE_GAIN_GRID]
@@ -467,11 +493,13 @@ def _rate_fit(u: np.ndarray, rate: np.ndarray, y: np.ndarray, start_params: GPIP
 
 def _rate_projection(values: np.ndarray, gain: float, u: np.ndarray, rate: np.ndarray, y: np.ndarray,
                      operators: int) -> tuple[float, float, np.ndarray]:
-    """(best a10 >= 0, SSR, residual in output spans) for the rate model with a1..a9, a11 from values."""
+    """(best a10 >= 0, SSR, residual in output spans) for the rate model with a1..a9, a11 from values;
+    u and rate have one sample more than y (the idle start), whose output is left out."""
     theta = values.copy()
     theta[9] = 1.0
-    shape = np.empty(u.size)
-    _rate_output(u, rate, theta, operators, float(gain), shape)
+    output = np.empty(u.size)
+    _rate_output(u, rate, theta, operators, float(gain), output)
+    shape = output[1:]
     norm = float(shape @ shape)
     a10 = max(float(shape @ y) / norm, 0.0) if norm > 0.0 else 0.0
     residual = a10 * shape - y

@@ -131,7 +131,7 @@ def residual_tests(e: np.ndarray, u: np.ndarray, t: np.ndarray, max_lag_s: float
     if np.any(np.diff(t) <= 0.0):
         raise InputError("time must increase from sample to sample")
     step = float(np.median(np.diff(t)))
-    band = Z_95 / np.sqrt(n)
+    band = float(Z_95 / np.sqrt(n))
     acf_lags = min(MAX_AUTOCORRELATION_LAGS, n // 4)
     rho = autocorrelation(e, acf_lags)
     q = ljung_box(rho, n)
@@ -145,15 +145,16 @@ def residual_tests(e: np.ndarray, u: np.ndarray, t: np.ndarray, max_lag_s: float
 
     def lag0(name: str, statistic: str, x: np.ndarray) -> ResidualCheck:
         value = correlation(e, x)
-        return ResidualCheck(name, statistic, value, band, abs(value) <= band)
+        return ResidualCheck(name, statistic, value, band, bool(abs(value) <= band))
 
     checks = {
-        "whiteness": ResidualCheck("whiteness", f"Ljung-Box Q ({acf_lags} lags)", q, q_threshold, q <= q_threshold),
+        "whiteness": ResidualCheck("whiteness", f"Ljung-Box Q ({acf_lags} lags)", q, q_threshold,
+                                   bool(q <= q_threshold)),
         "input": lag0("input", "r(e, u)", u),
         "input_rate": lag0("input_rate", "r(e, du/dt)", np.gradient(u, t)),
         "lagged_input": ResidualCheck("lagged_input", f"max r(e, u lagged) over {lags.size} lags",
-                                      float(ccf[strongest]), lagged_band, abs(ccf[strongest]) <= lagged_band,
+                                      float(ccf[strongest]), lagged_band, bool(abs(ccf[strongest]) <= lagged_band),
                                       lag_s=float(lags[strongest] * step)),
         "time": lag0("time", "r(e, t)", t),
     }
-    return ResidualTests(checks, float(band), np.arange(1, acf_lags + 1) * step, rho, lags * step, ccf)
+    return ResidualTests(checks, band, np.arange(1, acf_lags + 1) * step, rho, lags * step, ccf)
