@@ -67,7 +67,7 @@ def run_diagnose(args: argparse.Namespace) -> dict:
     ident = read_data(args.data, args)
     valid = read_data(args.validate, args)
     diagnosis = diagnose((ident.t, ident.input, ident.output), (valid.t, valid.input, valid.output),
-                         operators=args.operators, progress=progress_line)
+                         operators=args.operators, progress=progress_line, output_unit=args.unit)
     report = diagnosis_report(diagnosis, valid.source)
     write_outputs(args, report, "GPI fit and residual diagnosis", diagnosis.base)
     write_diagnosis_figures(args.out, valid, diagnosis, diagnosis.base.parameters.output_unit)

@@ -119,8 +119,9 @@ def write_diagnosis_figures(out_dir: Path, valid: Series, diagnosis: Diagnosis, 
     correlations = [
         Panel("residual autocorrelation (plain GPI)", tests.autocorrelation_lags_s,
               [("autocorrelation", tests.autocorrelation)], "lag [s]", "correlation", band=tests.band),
-        Panel("residual-input cross-correlation (plain GPI)", tests.cross_correlation_lags_s,
-              [("cross-correlation", tests.cross_correlation)], "lag [s]", "correlation", band=tests.band),
+        Panel("residual-input cross-correlation (plain GPI); band: the lagged-input test's",
+              tests.cross_correlation_lags_s, [("cross-correlation", tests.cross_correlation)], "lag [s]",
+              "correlation", band=tests.checks["lagged_input"].threshold),
     ]
     paths = [out_dir / "diagnosis_loops.png", out_dir / "diagnosis_correlations.png"]
     save_panels(paths[0], loops, columns=3)
