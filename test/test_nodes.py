@@ -621,7 +621,8 @@ def test_identification_record_bag_can_be_switched_while_running(ros, tmp_path):
     wait_until(lambda: len(identification.outputs) == 40, 5.0, "40 recorded positions")
     assert identification.set_parameters([Parameter("record_bag", value="")])[0].successful
     from_bag, recorded = read_bag(bag, min_samples=10), identification.recording_snapshot(min_samples=10)
-    assert len(from_bag) == len(recorded) >= 30 and np.ptp(from_bag.input) > 5.0
+    # DDS keeps no order between the two topics, so the first output may come before any input and be dropped
+    assert len(from_bag) == len(recorded) >= 30 and np.ptp(from_bag.input) > 4.0
     for column in ("t", "input", "output"):
         np.testing.assert_array_equal(getattr(from_bag, column), getattr(recorded, column))
 
