@@ -23,7 +23,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from rclpy.context import Context  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.time import Time  # noqa: E402
@@ -68,7 +68,7 @@ class Player:
         self.publishers = {"/current_cmd": self.node.create_publisher(Float64, "current_cmd", COMMAND_QOS),
                            "/joint_states": self.node.create_publisher(JointState, "joint_states",
                                                                        STATE_PUBLISH_QOS)}
-        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
         for node in (self.identification, self.node):
             self.executor.add_node(node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)

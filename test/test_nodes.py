@@ -20,7 +20,7 @@ rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rcl_interfaces.srv import SetParametersAtomically  # noqa: E402
 from rclpy.context import Context  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rosgraph_msgs.msg import Clock as ClockMessage  # noqa: E402
@@ -46,12 +46,12 @@ def unique_domain() -> int:
 
 
 class Ros:
-    """A private rclpy context with a background MultiThreadedExecutor and helpers to wait and call."""
+    """A private rclpy context with a background SingleThreadedExecutor and helpers to wait and call."""
 
     def __init__(self) -> None:
         self.context = Context()
         rclpy.init(context=self.context, domain_id=unique_domain())
-        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
         self.nodes: list[Node] = []
         self.error: Exception | None = None
         self.closing = False

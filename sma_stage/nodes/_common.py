@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -94,7 +96,74 @@ def finite(value: float) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value)
 
 
-def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, threads: int = 1) -> int:
+class _YieldToExecutor:
+    """Awaited inside an rclpy coroutine callback: hands the executor one turn."""
+
+    def __await__(self):
+        yield
+
+
+class WorkerService:
+    """A service of `owner` whose callback runs in a thread per request, so a long callback (a fit) leaves
+    the owner's executor free to record, and a second request is answered (e.g. refused) at once.
+
+    The service is offered under the owner's private name (`~/<name>`) by a hidden helper node in the
+    owner's context, spun by a private SingleThreadedExecutor; the callback thread wakes it through a
+    guard condition when it ends. rclpy's MultiThreadedExecutor is not used: it stalls timers for up to
+    seconds (ros2/rclpy#1223)."""
+
+    def __init__(self, owner: Node, service_type: type, name: str, callback: Callable) -> None:
+        self._callback = callback
+        self._node = Node(f"_{owner.get_name()}_{name}_worker", namespace=owner.get_namespace(),
+                          context=owner.context, start_parameter_services=False)
+        # Reentrant: a request is served while another one's callback runs, and the wake-up gets through.
+        concurrent = ReentrantCallbackGroup()
+        self._wake = self._node.create_guard_condition(lambda: None, callback_group=concurrent)
+        self._node.create_service(service_type, f"{owner.get_fully_qualified_name()}/{name}", self._serve,
+                                  callback_group=concurrent)
+        self._executor = SingleThreadedExecutor(context=owner.context)
+        self._executor.add_node(self._node)
+        self._thread: threading.Thread | None = threading.Thread(target=self._spin, name=f"{name}-service",
+                                                                 daemon=True)
+        self._thread.start()
+
+    async def _serve(self, request: object, response: object) -> object:
+        done = threading.Event()
+        outcome: dict[str, object] = {}
+
+        def work() -> None:
+            try:
+                outcome["response"] = self._callback(request, response)
+            except BaseException as error:  # noqa: BLE001 -- raised again in the executor
+                outcome["error"] = error
+            finally:
+                done.set()
+                self._wake.trigger()
+
+        threading.Thread(target=work, name=f"{self._node.get_name()}-call", daemon=True).start()
+        while not done.is_set():
+            await _YieldToExecutor()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["response"]
+
+    def _spin(self) -> None:
+        try:
+            self._executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop serving (waits up to timeout_s for a running callback) and destroy the helper node; idempotent."""
+        if self._thread is None:
+            return
+        self._executor.shutdown(timeout_sec=timeout_s)
+        self._thread.join(timeout=timeout_s)
+        self._thread = None
+        self._node.destroy_node()
+
+
+def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None) -> int:
     """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, shut down; 2 and one line for bad parameters."""
     try:
         rclpy.init(args=args)
@@ -103,7 +172,7 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
         return 2
     node = executor = None
     try:
-        executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
+        executor = SingleThreadedExecutor()
         node = make_node()
         executor.add_node(node)
         executor.spin()

@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParametersAtomically
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
@@ -52,6 +51,7 @@ from sma_stage.nodes._common import (
     RECORD_STATE_QOS,
     REPORT_QOS,
     Param,
+    WorkerService,
     declare_all,
     exit_with,
     run_node,
@@ -182,6 +182,7 @@ class IdentificationNode(Node):
         super().__init__("identification", **node_options)
         self._lock = threading.Lock()
         self.recorder: BagThread | None = None
+        self.refit_service: WorkerService | None = None
         try:
             self.values = declare_all(self, IDENTIFICATION_PARAMS)
             self.check_storage(str(self.values["bag_storage"]))
@@ -198,18 +199,15 @@ class IdentificationNode(Node):
         self.refitting = False
         self.last_report: dict | None = None
         self.add_on_set_parameters_callback(self.on_set_parameters)
-        self.refit_group = ReentrantCallbackGroup()
-        self.push_group = MutuallyExclusiveCallbackGroup()
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
         self.report_pub = self.create_publisher(String, "~/report", REPORT_QOS)
         self.create_subscription(Float64, "current_cmd", self.on_command, RECORD_COMMAND_QOS)
         self.create_subscription(JointState, "joint_states", self.on_joint_states, RECORD_STATE_QOS)
         self.create_service(Trigger, "~/excite", self.on_excite)
         self.create_service(Trigger, "~/clear", self.on_clear)
-        self.create_service(Trigger, "~/refit", self.on_refit, callback_group=self.refit_group)
         self.push_client = self.create_client(
-            SetParametersAtomically, f"{self.values['compensator_name']}/set_parameters_atomically",
-            callback_group=self.push_group)
+            SetParametersAtomically, f"{self.values['compensator_name']}/set_parameters_atomically")
+        self.refit_service = WorkerService(self, Trigger, "refit", self.on_refit)
         self.get_logger().info("identification ready"
                                + (f", recording into {self.recorder.path}" if self.recorder else ""))
 
@@ -252,6 +250,12 @@ class IdentificationNode(Node):
         """Stop exciting and finish the bag (called before the node is destroyed)."""
         self.stop_excitation()
         self.close_bag()
+
+    def destroy_node(self) -> None:
+        """Stop the refit worker, then destroy the node."""
+        if self.refit_service is not None:
+            self.refit_service.close()
+        super().destroy_node()
 
     # --- recording -------------------------------------------------------------------------------
 
@@ -381,7 +385,7 @@ class IdentificationNode(Node):
         return recording_series(inputs, outputs, min_samples)
 
     def on_refit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """Fit the recording (in this executor worker thread) and answer with the JSON report."""
+        """Fit the recording (in the refit worker thread) and answer with the JSON report."""
         reason = self.refusal()
         if reason is not None:
             response.success, response.message = False, reason
@@ -454,7 +458,7 @@ class IdentificationNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Entry point `identification_node`."""
-    exit_with(run_node(IdentificationNode, args, threads=4))
+    exit_with(run_node(IdentificationNode, args))
 
 
 if __name__ == "__main__":
