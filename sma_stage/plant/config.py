@@ -37,31 +37,33 @@ class StageConfig:
     wire_diameter_m: float = 1.0e-3
     wire_length_a_m: float = 0.060
     wire_length_b_m: float = 0.056
-    prestrain_a: float = 0.030
-    prestrain_b: float = 0.026
+    prestrain_a: float = 0.022
+    prestrain_b: float = 0.021
     density_kg_m3: float = 6450.0
-    specific_heat_j_kg_k: float = 837.0
+    specific_heat_j_kg_k: float = 450.0
     resistivity_martensite_ohm_m: float = 76e-8
     resistivity_austenite_ohm_m: float = 82e-8
     convection_w_m2_k: float = 50.0
+    thermal_conductivity_w_m_k: float = 18.0
     ambient_temperature_k: float = 293.15
     youngs_modulus_austenite_pa: float = 70e9
     youngs_modulus_martensite_pa: float = 30e9
     recovery_strain: float = 0.045
-    detwin_start_stress_pa: float = 100e6
-    detwin_finish_stress_pa: float = 170e6
+    detwin_start_stress_pa: float = 70e6
+    detwin_finish_stress_pa: float = 140e6
     stress_slope_austenite_pa_k: float = 8e6
     stress_slope_martensite_pa_k: float = 8e6
-    martensite_finish_k: float = 308.15
-    martensite_start_k: float = 323.15
-    austenite_start_k: float = 333.15
-    austenite_finish_k: float = 348.15
-    lever_ratio: float = 0.4
-    flexure_stiffness_n_m: float = 8e5
+    martensite_finish_k: float = 278.15
+    martensite_start_k: float = 291.15
+    austenite_start_k: float = 293.15
+    austenite_finish_k: float = 313.15
+    lever_ratio: float = 1.8
+    flexure_stiffness_n_m: float = 2.7e5
     max_current_a: float = 5.0
     sensor_noise_m: float = 0.2e-6
     sensor_resolution_m: float = 0.1e-6
-    max_substep_s: float = 0.05
+    max_substep_s: float = 0.25
+    wire_nodes: int = 16
 
     _RANGES = {
         "wire_diameter_m": (1e-5, 5e-3),
@@ -74,6 +76,7 @@ class StageConfig:
         "resistivity_martensite_ohm_m": (1e-8, 1e-5),
         "resistivity_austenite_ohm_m": (1e-8, 1e-5),
         "convection_w_m2_k": (1.0, 5000.0),
+        "thermal_conductivity_w_m_k": (0.0, 500.0),
         "ambient_temperature_k": (200.0, 400.0),
         "youngs_modulus_austenite_pa": (1e9, 500e9),
         "youngs_modulus_martensite_pa": (1e9, 500e9),
@@ -92,11 +95,14 @@ class StageConfig:
         "sensor_noise_m": (0.0, 1e-2),
         "sensor_resolution_m": (0.0, 1e-2),
         "max_substep_s": (1e-5, 1.0),
+        "wire_nodes": (1, 100),
     }
 
     def __post_init__(self) -> None:
         for item in fields(self):
             _check_range(self, item.name, *self._RANGES[item.name])
+        if not float(self.wire_nodes).is_integer():
+            raise InputError(f"StageConfig.wire_nodes must be a whole number, got {self.wire_nodes!r}")
         self._check_orderings()
 
     @classmethod
@@ -127,11 +133,14 @@ class StageConfig:
 
     @property
     def thermal_time_constant_s(self) -> float:
-        """Wire thermal time constant rho c d / (4 h) [s]."""
-        return self.density_kg_m3 * self.specific_heat_j_kg_k * self.wire_diameter_m / (4.0 * self.convection_w_m2_k)
+        """Slowest thermal mode [s] of wire A: convection, 4 h / (rho c d), plus conduction into the clamps."""
+        heat_capacity = self.density_kg_m3 * self.specific_heat_j_kg_k
+        convection = 4.0 * self.convection_w_m2_k / (heat_capacity * self.wire_diameter_m)
+        conduction = self.thermal_conductivity_w_m_k / heat_capacity * (math.pi / self.wire_length_a_m) ** 2
+        return 1.0 / (convection + conduction)
 
     def steady_temperature_rise_k(self, current_a: float) -> float:
-        """Steady-state rise above ambient [K] of a fully austenitic wire carrying current_a [A]."""
+        """Steady-state rise above ambient [K] of a fully austenitic wire carrying current_a [A], far from the clamps."""
         per_metre = current_a**2 * self.resistivity_austenite_ohm_m / self.wire_area_m2
         return per_metre / (self.convection_w_m2_k * math.pi * self.wire_diameter_m)
 
@@ -207,4 +216,6 @@ def pack_parameters(config: StageConfig, effects: Effects) -> np.ndarray:
     p[ph.P_CREEP_REFERENCE] = effects.creep_reference_m
     p[ph.P_LOAD_FORCE] = effects.load_change_n
     p[ph.P_LOAD_TIME] = effects.load_change_time_s
+    p[ph.P_CONDUCTANCE] = config.thermal_conductivity_w_m_k * area
+    p[ph.P_NODES] = int(config.wire_nodes)
     return p

@@ -96,7 +96,7 @@ class StageSimulator:
 
     def reset(self) -> StageState:
         """Back to rest at t = 0 (wires at ambient, martensite, pre-strained); noise restarts from the seed."""
-        self._state = ph.new_state()
+        self._state = ph.new_state(self._parameters)
         ph.settle(self._parameters, self._state)
         self._rng = np.random.default_rng(self.seed)
         self._position = ph.stage_position(self._parameters, self._state)
@@ -135,17 +135,14 @@ class StageSimulator:
         return self._initial_position
 
     def _snapshot(self, current: float, measured: float, velocity: float) -> StageState:
-        s = self._state
+        s, p = self._state, self._parameters
         return StageState(
             time_s=float(s[ph.S_TIME]),
             position_m=float(self._position),
             velocity_m_s=float(velocity),
             measured_position_m=float(measured),
-            wire_temperatures_k=(float(s[ph.S_TEMP_A]), float(s[ph.S_TEMP_B])),
-            martensite_fractions=(
-                float(s[ph.S_DETWINNED_A] + s[ph.S_TWINNED_A]),
-                float(s[ph.S_DETWINNED_B] + s[ph.S_TWINNED_B]),
-            ),
+            wire_temperatures_k=(ph.wire_mean(p, s, 0, ph.K_TEMPERATURE), ph.wire_mean(p, s, 1, ph.K_TEMPERATURE)),
+            martensite_fractions=(ph.wire_mean(p, s, 0, ph.K_DETWINNED), ph.wire_mean(p, s, 1, ph.K_DETWINNED)),
             current_a=current,
             wire_stresses_pa=(float(s[ph.S_STRESS_A]), float(s[ph.S_STRESS_B])),
         )
