@@ -20,8 +20,10 @@ from sma_stage.model import PARAMETER_NAMES, GPIInverseStream, GPIParameters, lo
 from sma_stage.nodes._common import COMMAND_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, find_executable, wait_for  # noqa: E402
 
-TIME_SCALE = 200.0  # simulated s per wall s: the 500 s excitation takes 2.5 s
+TIME_SCALE = 100.0  # simulated s per wall s on a quiet machine: the 500 s excitation takes about 5 s
 EXCITE_S = 500.0
+# Every node on the stage's /clock: the recording, the excitation and the PI run on simulated time, so a
+# loaded machine slows the run down instead of distorting it.
 
 
 class Recorder:
@@ -36,12 +38,11 @@ class Recorder:
 
 
 def start_system(nodes: NodeProcesses, model_file) -> None:
-    nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0},
-                [CONFIG_DIR / "stage.yaml"])
-    nodes.start("compensator_node", {"rate_hz": 50.0}, [CONFIG_DIR / "compensator.yaml"])
-    nodes.start("identification_node", {"excite_duration": EXCITE_S, "excite_time_scale": TIME_SCALE,
-                                         "excite_rate_hz": 100.0, "operators": 5, "min_samples": 60,
-                                         "model_file": str(model_file)},
+    nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0,
+                                "use_sim_time": True}, [CONFIG_DIR / "stage.yaml"])
+    nodes.start("compensator_node", {"rate_hz": 1.0, "use_sim_time": True}, [CONFIG_DIR / "compensator.yaml"])
+    nodes.start("identification_node", {"excite_duration": EXCITE_S, "excite_rate_hz": 1.0, "operators": 5,
+                                         "min_samples": 60, "model_file": str(model_file), "use_sim_time": True},
                 [CONFIG_DIR / "identification.yaml"])
 
 
@@ -49,7 +50,7 @@ def refit_after_excitation(client: RosClient, check) -> dict:
     ok, message = client.trigger("identification/excite")
     assert ok, message
     time.sleep(EXCITE_S / TIME_SCALE)
-    deadline = time.monotonic() + 20.0
+    deadline = time.monotonic() + 60.0
     while True:
         ok, message = client.trigger("identification/refit", timeout_s=60.0)
         if ok or "excitation is running" not in message or time.monotonic() > deadline:
@@ -73,7 +74,7 @@ def test_executables_excite_refit_push_and_track(tmp_path):
             wait_for(lambda: len(seen.positions) > 10, 30.0, "joint_states", nodes.check_running)
             report = refit_after_excitation(client, nodes.check_running)
             assert report["compensator"]["pushed"], report["compensator"]["message"]
-            nominal = EXCITE_S / TIME_SCALE * 100.0  # stage steps during the excitation; a busy machine loses some
+            nominal = EXCITE_S  # one stage step per simulated second; a busy machine loses some messages
             assert report["samples"]["identification"] + report["samples"]["validation"] >= 0.4 * nominal
             fitted = GPIParameters.from_dict(report["model"]["parameters"])
             held = client.get_parameters("compensator", [*PARAMETER_NAMES, "operators"])
@@ -91,13 +92,13 @@ def test_executables_excite_refit_push_and_track(tmp_path):
             setpoint.publish(Float64(data=target))
             wait_for(lambda: len(seen.commands) > commands_before, 10.0, "a current command", nodes.check_running)
             assert abs(seen.commands[commands_before] - expected) <= 1e-12, "feedforward: the fitted model's inverse"
-            client.set_parameters("compensator", {"feedback": True, "kp": 1.0, "ki": 0.1 * TIME_SCALE})
+            client.set_parameters("compensator", {"feedback": True, "kp": 1.0, "ki": 0.1})
 
             def close_to_target() -> bool:
                 setpoint.publish(Float64(data=target))
                 return abs(np.mean(seen.positions[-5:]) - target) < 0.5 * abs(start - target)
 
-            wait_for(close_to_target, 20.0, f"the stage to move from {start:.3g} m toward {target:.3g} m",
+            wait_for(close_to_target, 60.0, f"the stage to move from {start:.3g} m toward {target:.3g} m",
                      nodes.check_running, poll_s=0.05)
         exits = nodes.stop_all()
     assert exits == {"stage_node": 0, "compensator_node": 0, "identification_node": 0}, exits

@@ -195,7 +195,7 @@ class IdentificationNode(Node):
         self.outputs: deque[tuple[int, int, float]] = deque(maxlen=int(self.values["max_samples"]))
         self.excite_start_ns: int | None = None
         self.excite_timer = None
-        self.frozen = False
+        self.record_until_ns: int | None = None  # set when an excitation ends with freeze_after_excite
         self.refitting = False
         self.last_report: dict | None = None
         self.add_on_set_parameters_callback(self.on_set_parameters)
@@ -267,7 +267,7 @@ class IdentificationNode(Node):
         """Record a current command [A] at its arrival time."""
         receive_ns, value = self.now_ns(), float(message.data)
         with self._lock:
-            if not self.frozen:
+            if self.record_until_ns is None or receive_ns <= self.record_until_ns:
                 self.inputs.append((receive_ns, value))
         recorder = self.recorder
         if recorder is not None:
@@ -285,11 +285,19 @@ class IdentificationNode(Node):
         position = float(message.position[index])
         velocity = float(message.velocity[index]) if index < len(message.velocity) else 0.0
         with self._lock:
-            if not self.frozen:
+            if self.recording_output(receive_ns, stamp_ns):
                 self.outputs.append((receive_ns, stamp_ns, position))
         recorder = self.recorder
         if recorder is not None:
             recorder.write_output(stamp_ns, position, velocity, receive_ns)
+
+    def recording_output(self, receive_ns: int, stamp_ns: int) -> bool:
+        """Whether a position belongs in the buffer: always, unless it is frozen; then only positions
+        received, or stamped during the excitation, before it ended (a busy node takes them late)."""
+        limit = self.record_until_ns
+        if limit is None:
+            return True
+        return receive_ns <= limit or (self.excite_start_ns or 0) <= stamp_ns <= limit
 
     def on_clear(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Empty the buffer."""
@@ -297,7 +305,7 @@ class IdentificationNode(Node):
             dropped = len(self.inputs) + len(self.outputs)
             self.inputs.clear()
             self.outputs.clear()
-            self.frozen = False
+            self.record_until_ns = None
         response.success, response.message = True, f"buffer cleared ({dropped} messages dropped)"
         return response
 
@@ -321,7 +329,7 @@ class IdentificationNode(Node):
         if self.values["clear_on_excite"]:
             self.on_clear(request, Trigger.Response())
         with self._lock:
-            self.frozen = False
+            self.record_until_ns = None
         self.excite_start_ns = self.now_ns()
         self.excite_timer = self.create_timer(1.0 / float(self.values["excite_rate_hz"]), self.on_excite_tick)
         self.on_excite_tick()
@@ -345,10 +353,11 @@ class IdentificationNode(Node):
         if t >= duration:
             self.command_pub.publish(Float64(data=0.0))
             self.stop_excitation()
+            frozen = bool(self.values["freeze_after_excite"])
             with self._lock:
-                self.frozen = bool(self.values["freeze_after_excite"])
+                self.record_until_ns = self.now_ns() if frozen else None
             self.get_logger().info("excitation finished: ~/refit can fit it now"
-                                   + (" (buffer frozen until ~/clear or ~/excite)" if self.frozen else ""))
+                                   + (" (buffer frozen until ~/clear or ~/excite)" if frozen else ""))
             return
         value = paper_identification_signal(t, float(self.values["excite_amplitude_start"]),
                                             float(self.values["excite_amplitude_end"]),
