@@ -51,6 +51,7 @@ N_PARAMETERS = 33
 # node temperatures [K], detwinned (strain-carrying) and twinned martensite fractions, from the
 # clamp to the middle of the wire.
 S_TIME = 0  # s
+MIN_THERMAL_STEP_S = 1e-12  # shorter steps leave the temperatures as they are (C/dt would overflow)
 S_WIRE_DISPLACEMENT = 1  # m, wire-end displacement u (stage x = lever * u, before creep)
 S_CREEP = 2  # m
 S_STRESS_A = 3  # Pa (wire B: S_STRESS_A + 1)
@@ -371,8 +372,12 @@ def _wire_temperatures(p, s, wire, current, ambient, dt, out, work):
     length = p[P_LENGTH_A] if wire == 0 else p[P_LENGTH_B]
     dx = 0.5 * length / n
     link = p[P_CONDUCTANCE] / (dx * dx)
-    rate = p[P_HEAT_CAPACITY] / dt
     t0, d0, w0 = block(p, wire, K_TEMPERATURE), block(p, wire, K_DETWINNED), block(p, wire, K_TWINNED)
+    if dt < MIN_THERMAL_STEP_S:
+        for j in range(n):
+            out[j] = s[t0 + j]
+        return
+    rate = p[P_HEAT_CAPACITY] / dt
     diag = work[:n]
     rhs = out
     for j in range(n):
