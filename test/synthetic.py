@@ -89,19 +89,20 @@ def first_order_lag(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
 
 def plant_output(t: np.ndarray, u: np.ndarray, effect: str, values: dict[str, float]) -> np.ndarray:
     """The noise-free position [m] of the plant with the effect (drift is added by `record`), on the fine
-    grid t; the stage is idle before t[0]."""
+    grid t; the stage is idle before t[0]. Several effects joined by "+" act in the order written."""
     nominal = TRUE_PARAMETERS.thresholds(TRUE_OPERATORS)
     thresholds = np.broadcast_to(nominal, (t.size, TRUE_OPERATORS))
     drive = u
-    if effect == "thermal_lag":
-        drive = first_order_lag(t, u, values["tau_s"])
-    elif effect == "delay":
-        drive = np.interp(t - values["delay_s"], t, u, left=0.0)
-    elif effect == "rate":
-        rate = np.abs(np.gradient(u, t))
-        thresholds = nominal[None, :] * (1.0 + values["rate_gain_s_per_A"] * rate[:, None])
-    elif effect not in ("none", "drift"):
-        raise ValueError(f"unknown effect {effect!r}")
+    for name in effect.split("+"):
+        if name == "thermal_lag":
+            drive = first_order_lag(t, drive, values["tau_s"])
+        elif name == "delay":
+            drive = np.interp(t - values["delay_s"], t, drive, left=0.0)
+        elif name == "rate":
+            rate = np.abs(np.gradient(drive, t))
+            thresholds = nominal[None, :] * (1.0 + values["rate_gain_s_per_A"] * rate[:, None])
+        elif name not in ("none", "drift"):
+            raise ValueError(f"unknown effect {name!r}")
     return play_outputs(drive, np.ascontiguousarray(thresholds))
 
 
@@ -115,7 +116,7 @@ def record(input_signal, effect: str, values: dict[str, float], rng: np.random.G
     fine_y = plant_output(fine_t, fine_u, effect, values)
     pick = slice(OVERSAMPLING, None, OVERSAMPLING)
     t, clean = fine_t[pick].copy(), fine_y[pick].copy()
-    if effect == "drift":
+    if "drift" in effect.split("+"):
         clean += values.get("drift_m_per_s", 0.0) * t
         clean += values.get("creep_m", 0.0) * (1.0 - np.exp(-t / values.get("creep_tau_s", 1.0)))
     noisy = clean + rng.normal(0.0, noise_sigma_m, clean.size)
@@ -126,7 +127,7 @@ def make_case(effect: str, seed: int = 0, noise_sigma_m: float = NOISE_SIGMA_M,
               sample_period_s: float = SAMPLE_PERIOD_S, duration_s: float = DURATION_S,
               **values: float) -> Case:
     """Identification (paper's decaying sine) and validation (paper's two cosines) records with the effect."""
-    truth = dict(DEFAULT_EFFECTS[effect]) if not values else dict(values)
+    truth = dict(values) or {key: value for name in effect.split("+") for key, value in DEFAULT_EFFECTS[name].items()}
     rng = np.random.default_rng(seed)
     ident = record(paper_identification_signal, effect, truth, rng, noise_sigma_m, sample_period_s, duration_s)
     valid = record(paper_validation_signal, effect, truth, rng, noise_sigma_m, sample_period_s, duration_s)

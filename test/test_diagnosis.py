@@ -43,15 +43,34 @@ def test_diagnose_names_the_injected_effect_and_reaches_the_noise_floor(effect):
     case, result = diagnosed(effect)
     floor = case.validation.noise_floor_pct
     assert result.effect == effect, [(c.effect, c.validation.rms_pct, c.reason) for c in result.candidates]
+    assert result.effects == [effect], "nothing more is added once the effect is in"
     assert result.before.rms_pct > 3.0 * floor  # the effect mattered to the plain GPI
     assert result.after.rms_pct <= FLOOR_FACTOR * floor
     for name, truth in case.truth.items():
         assert result.parameters[name] == pytest.approx(truth, rel=PARAMETER_TOLERANCE)
 
 
+def test_diagnose_adds_a_second_effect_in_a_later_round():
+    case, result = diagnosed("thermal_lag+drift")
+    rounds = [(found.winner.effect if found.winner else None, [(c.effect, c.reason) for c in found.candidates])
+              for found in result.rounds]
+    assert sorted(result.effects) == ["drift", "thermal_lag"], rounds
+    assert result.effect == result.effects[0]
+    assert result.after.rms_pct <= FLOOR_FACTOR * case.validation.noise_floor_pct
+    assert result.rounds[1].before == result.rounds[0].winner.validation
+    assert result.after.rms_pct < result.rounds[1].before.rms_pct
+    assert result.parameters["tau_s"] == pytest.approx(case.truth["tau_s"], rel=PARAMETER_TOLERANCE)
+    assert result.parameters["drift_m_per_s"] == pytest.approx(case.truth["drift_m_per_s"], rel=0.1)
+    t, u = case.validation.t, case.validation.u
+    assert np.array_equal(result.chain.predict(t, u), result.validation_predicted_after)
+    block = result.to_dict()
+    assert block["effects"] == result.effects and [r["added"] for r in block["rounds"]][:2] == result.effects
+
+
 def test_diagnose_answers_none_when_the_gpi_suffices():
     case, result = diagnosed("none")
     assert result.effect == "none", [(c.effect, c.delta_bic, c.validation.rms_pct) for c in result.candidates]
+    assert result.effects == [] and len(result.rounds) == 1
     assert result.parameters == {}
     assert result.after == result.before
     assert result.before.rms_pct <= FLOOR_FACTOR * case.validation.noise_floor_pct

@@ -1,10 +1,14 @@
 """Close the loop: fit the GPI, test its validation residual, fit the candidate effects, keep the one that
-earns its parameters (or none), and give the JSON report's "diagnosis" block.
+earns its parameters (or none), then look again at what the model with it still gets wrong, round after
+round, and give the JSON report's "diagnosis" block.
 
-Selection rule: a candidate is accepted when its BIC on the identification data is at least BIC_MARGIN
-below the plain GPI's AND its validation RMS error is at least VALIDATION_MARGIN (relative) below the
-plain GPI's; of the accepted ones the lowest validation RMS wins (the lower BIC on a tie); none accepted
-means "none".
+Selection rule, in each round: a candidate is accepted when its BIC on the identification data is at
+least BIC_MARGIN below the current model's AND its validation RMS error is below the current model's by
+at least VALIDATION_MARGIN (relative) in the first round, LATER_VALIDATION_MARGIN in later ones; of the
+accepted ones the lowest validation RMS wins (the lower BIC on a tie). A round with none accepted ends
+the search. Later rounds are greedy: the effects found so far keep their parameters and the candidate is
+fitted on the input and output they make (the GPI refitted with it); each effect enters at most once, and
+none follows `rate` (it changes the GPI itself rather than its input or output).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from sma_stage.identify.effects import (
     EffectFit,
     check_record,
     fit_effect,
+    information_criterion,
     no_effect,
     recount_effect,
 )
@@ -29,7 +34,9 @@ from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
 
 BIC_MARGIN = 10.0  # "very strong" evidence on the Kass-Raftery scale
-VALIDATION_MARGIN = 0.10  # the validation RMS must fall by at least 10 %
+VALIDATION_MARGIN = 0.10  # the validation RMS must fall by at least 10 % in the first round
+LATER_VALIDATION_MARGIN = 0.03  # and by at least 3 % in a later round
+REFINE_SWEEPS = 1  # backfitting sweeps over the added effects after each later round
 RECOUNTED = 2  # accepted candidates (best validation first) whose operator count is chosen again
 # Which residual test points at which effect (the strongest first; ties keep this order).
 POINTERS: dict[str, tuple[str, ...]] = {
@@ -74,36 +81,46 @@ class CandidateResult:
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """The outcome: the effect named ("none" or one of EFFECT_NAMES), the test evidence on the plain
-    GPI's validation residual, the effect's parameters, validation errors before and after, every
-    candidate (those that could not be fitted under `failures`, with the reason), and the series
-    behind them (for plots)."""
+    """The outcome: the effect named first ("none" or one of EFFECT_NAMES) and every effect added, in
+    order; the test evidence on the plain GPI's validation residual; the added effects' parameters;
+    validation errors before and after; the first round's candidates (those that could not be fitted
+    under `failures`, with the reason) and every round; the series behind them (for plots)."""
 
     effect: str
+    effects: list[str]
     evidence: dict[str, str]
     parameters: dict[str, float]
     before: ErrorMetrics
     after: ErrorMetrics
     base: FitResult
-    chosen: EffectFit
+    chain: Chain
     tests_before: ResidualTests
     tests_after: ResidualTests
     candidates: list[CandidateResult]
+    rounds: list[Round]
     validation_predicted_before: np.ndarray = field(repr=False)
     validation_predicted_after: np.ndarray = field(repr=False)
     failures: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
 
+    @property
+    def chosen(self) -> EffectFit:
+        """The last stage of the model (the plain GPI when nothing was added)."""
+        return self.chain.last
+
     def to_dict(self) -> dict[str, object]:
-        """The JSON report's "diagnosis" block (plus the per-candidate table under "candidates")."""
+        """The JSON report's "diagnosis" block, plus the effects added in order, the first round's
+        candidates under "candidates" and every round under "rounds"."""
         return {
             "effect": self.effect,
             "evidence": dict(self.evidence),
             "parameters": dict(self.parameters),
             "before": {"validation": _errors(self.before)},
             "after": {"validation": _errors(self.after)},
+            "effects": list(self.effects),
             "candidates": [candidate.to_dict() for candidate in self.candidates],
             **({"not_fitted": dict(self.failures)} if self.failures else {}),
+            "rounds": [found.to_dict() for found in self.rounds],
         }
 
 
@@ -134,89 +151,254 @@ def rank_candidates(tests: ResidualTests) -> list[str]:
     return sorted(EFFECT_NAMES, key=lambda effect: -strength(effect))
 
 
-def judge(fit: EffectFit, plain: EffectFit, validation: ErrorMetrics, before: ErrorMetrics) -> tuple[bool, str]:
-    """(accepted, reason) under the selection rule."""
-    delta_bic = fit.bic - plain.bic
-    target = (1.0 - VALIDATION_MARGIN) * before.rms_pct
+@dataclass(frozen=True)
+class Chain:
+    """The model so far: the plain GPI fit, then each added effect in the order found. Each stage was
+    fitted on the input and output the stages before it make (their input transforms applied in turn,
+    their output offsets taken off); the last one predicts."""
+
+    stages: tuple[EffectFit, ...]
+    base: FitResult = field(repr=False, compare=False)
+
+    @property
+    def effects(self) -> list[str]:
+        """Names of the added effects, in order."""
+        return [stage.effect for stage in self.stages[1:]]
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        """Every added effect's parameters."""
+        return {name: value for stage in self.stages[1:] for name, value in stage.parameters.items()}
+
+    @property
+    def last(self) -> EffectFit:
+        return self.stages[-1]
+
+    @property
+    def composable(self) -> bool:
+        """Whether a further effect can be fitted on top (see the module docstring)."""
+        return self.last.composable
+
+    @property
+    def bic(self) -> float:
+        """BIC on the identification data, counting the parameters of every stage."""
+        earlier = sum(len(stage.parameters) for stage in self.stages[:-1])
+        return information_criterion(self.last.cost, self.last.samples, self.last.parameter_count + earlier)
+
+    def data(self, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(input, output) as an effect added on top sees them: every stage's input transform applied in
+        turn, every output offset taken off."""
+        v, offset = self._through(t, u, len(self.stages))
+        return v, y - offset
+
+    def predict(self, t: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Output [output unit] of the whole model for a record (t [s], u [A])."""
+        v, offset = self._through(t, u, len(self.stages) - 1)
+        return self.last.predict(t, v) + offset
+
+    def _through(self, t: np.ndarray, u: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+        offset = np.zeros_like(t)
+        for stage in self.stages[:count]:
+            if stage.input_transform is not None:
+                u = stage.input_transform(t, u)
+            if stage.output_offset is not None:
+                offset = offset + stage.output_offset(t)
+        return u, offset
+
+    def then(self, stage: EffectFit) -> Chain:
+        """This model with one more effect."""
+        return Chain((*self.stages, stage), self.base)
+
+    def without(self, index: int) -> Chain:
+        """This model without stage `index` (an added effect; the last stage keeps its GPI)."""
+        return Chain(self.stages[:index] + self.stages[index + 1:], self.base)
+
+    @property
+    def refittable(self) -> bool:
+        """Whether every added effect can be fitted again on top of the others: they are input
+        transforms that commute (linear, time-invariant: lag, delay) and output offsets, so their order
+        does not matter."""
+        return all(stage.composable for stage in self.stages)
+
+
+@dataclass(frozen=True)
+class Round:
+    """One round of the search: the model it started from (its validation errors), every candidate
+    fitted on top of it, and the one added (None when none earned its parameters)."""
+
+    before: ErrorMetrics
+    candidates: list[CandidateResult]
+    failures: dict[str, str]
+    winner: CandidateResult | None
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain values for the JSON report."""
+        return {
+            "added": self.winner.effect if self.winner else "none",
+            "before": {"validation": _errors(self.before)},
+            "after": {"validation": _errors(self.winner.validation if self.winner else self.before)},
+            "candidates": [candidate.to_dict() for candidate in self.candidates],
+            **({"not_fitted": dict(self.failures)} if self.failures else {}),
+        }
+
+
+def judge(delta_bic: float, validation: ErrorMetrics, before: ErrorMetrics,
+          margin: float = VALIDATION_MARGIN) -> tuple[bool, str]:
+    """(accepted, reason) under the selection rule, margin being the relative fall the validation RMS needs."""
+    target = (1.0 - margin) * before.rms_pct
     if delta_bic > -BIC_MARGIN:
         return False, f"BIC change {delta_bic:+.1f} does not reach -{BIC_MARGIN:g}"
     if validation.rms_pct > target:
-        return False, f"validation RMS {validation.rms_pct:.3g} % is not below {target:.3g} % (-{VALIDATION_MARGIN:.0%})"
+        return False, f"validation RMS {validation.rms_pct:.3g} % is not below {target:.3g} % (-{margin:.0%})"
     return True, f"BIC change {delta_bic:+.1f}, validation RMS {before.rms_pct:.3g} % -> {validation.rms_pct:.3g} %"
 
 
-def _candidate(fit: EffectFit, plain: EffectFit, valid: Record, before: ErrorMetrics,
-               seconds: float) -> CandidateResult:
+def _candidate(chain: Chain, fit: EffectFit, valid: Record, before: ErrorMetrics, seconds: float,
+               margin: float) -> CandidateResult:
+    extended = chain.then(fit)
     t_v, u_v, y_v = valid
-    validation = error_metrics(y_v, fit.predict(t_v, u_v))
-    accepted, reason = judge(fit, plain, validation, before)
-    return CandidateResult(fit.effect, fit.parameters, fit.identification, validation, fit.bic - plain.bic,
-                           accepted, reason, seconds, fit)
+    validation = error_metrics(y_v, extended.predict(t_v, u_v))
+    delta_bic = extended.bic - chain.bic
+    accepted, reason = judge(delta_bic, validation, before, margin)
+    return CandidateResult(fit.effect, fit.parameters, fit.identification, validation, delta_bic, accepted, reason,
+                           seconds, fit)
+
+
+def _search_round(chain: Chain, ident: Record, valid: Record, before: ErrorMetrics, tests: ResidualTests,
+                  recount: bool, progress: Progress) -> Round:
+    """Fit every effect not yet in the chain on top of it and pick the winner (see the selection rule)."""
+    first = len(chain.stages) == 1
+    margin = VALIDATION_MARGIN if first else LATER_VALIDATION_MARGIN
+    t_i, u_i, y_i = ident
+    v_i, w_i = chain.data(t_i, u_i, y_i)
+    last = chain.last
+    base = chain.base if first else fit_gpi(v_i, w_i, operators=last.operators, initial=last.gpi_parameters,
+                                            output_unit=last.gpi_parameters.output_unit)
+    candidates, failures = [], {}
+    for name in (effect for effect in rank_candidates(tests) if effect not in chain.effects):
+        _report(progress, f"fitting candidate {name}" + ("" if first else f" on top of {' + '.join(chain.effects)}"))
+        try:
+            fit = fit_effect(name, t_i, v_i, w_i, base, progress)
+        except InputError as error:
+            failures[name] = str(error)
+            _report(progress, f"{name}: not fitted: {error}")
+            continue
+        candidates.append(_candidate(chain, fit, valid, before, fit.seconds, margin))
+        _report(progress, f"{name}: {candidates[-1].reason}")
+    if recount:
+        leaders = sorted((c for c in candidates if c.accepted), key=lambda c: c.validation.rms_pct)[:RECOUNTED]
+        for leader in leaders:
+            try:
+                fit = recount_effect(leader.fit, t_i, v_i, w_i, progress)
+            except InputError as error:
+                _report(progress, f"{leader.effect}: operator count kept: {error}")
+                continue
+            if fit is not leader.fit:
+                candidates[candidates.index(leader)] = _candidate(chain, fit, valid, before,
+                                                                  leader.seconds + fit.seconds, margin)
+    accepted = [c for c in candidates if c.accepted]
+    winner = min(accepted, key=lambda c: (c.validation.rms_pct, c.delta_bic)) if accepted else None
+    return Round(before, candidates, failures, winner)
+
+
+def refine(chain: Chain, ident: Record, sweeps: int = REFINE_SWEEPS, progress: Progress = None) -> Chain:
+    """Fit every added effect again, in turn, on top of all the others (backfitting): a greedy search
+    leaves an early effect holding part of a later one (a lag fitted with a drift still in the data).
+    A refit replaces the chain only when it lowers the identification SSR."""
+    if len(chain.effects) < 2 or not chain.refittable:
+        return chain
+    t_i, u_i, y_i = ident
+    for _ in range(sweeps):
+        for name in list(chain.effects):
+            index = chain.effects.index(name) + 1
+            others = chain.without(index)
+            v_i, w_i = others.data(t_i, u_i, y_i)
+            last = others.last
+            try:
+                start = fit_gpi(v_i, w_i, operators=last.operators, initial=last.gpi_parameters,
+                                output_unit=last.gpi_parameters.output_unit)
+                fit = fit_effect(name, t_i, v_i, w_i, start, progress)
+            except InputError as error:
+                _report(progress, f"{name}: not refitted: {error}")
+                continue
+            if fit.cost < chain.last.cost:
+                chain = others.then(fit)
+                _report(progress, f"{name} refitted on top of the others: {fit.parameters}")
+    return chain
+
+
+def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chain:
+    """The chain with its operator count chosen again on top of every added effect (fit_gpi's rule): the
+    first round chose it with only the first effect in."""
+    t_i, u_i, y_i = ident
+    others = chain.without(len(chain.stages) - 1)
+    v_i, w_i = others.data(t_i, u_i, y_i)
+    try:
+        fit = recount_effect(chain.last, t_i, v_i, w_i, progress)
+    except InputError as error:
+        _report(progress, f"operator count kept: {error}")
+        return chain
+    return chain if fit is chain.last else others.then(fit)
 
 
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,
-             progress: Progress = None, output_unit: str = "m") -> Diagnosis:
+             progress: Progress = None, output_unit: str = "m", max_rounds: int = len(EFFECT_NAMES)) -> Diagnosis:
     """Fit (unless base is given) on ident, test the validation residual, fit and judge every candidate
-    effect, and name the one that earns its parameters ("none" if none does).
+    effect, add the one that earns its parameters, and search again on top of it, up to max_rounds
+    rounds; "none" when the first round adds nothing.
 
-    Candidates are fitted at the base fit's operator count; unless operators is given, the count is
-    then chosen again for the RECOUNTED best accepted candidates (an effect the plain GPI lacks also
-    skews the count chosen for it).
+    In the first round candidates are fitted at the base fit's operator count; unless operators is
+    given, the count is then chosen again for the RECOUNTED best accepted candidates (an effect the
+    plain GPI lacks also skews the count chosen for it). Later rounds keep the count; after them every
+    added effect is fitted again on top of the others (`refine`) and the count chosen once more.
     """
     started = time.perf_counter()
-    t_i, u_i, y_i = as_record(ident, "identification")
+    ident_record = as_record(ident, "identification")
     valid_record = as_record(valid, "validation")
+    t_i, u_i, y_i = ident_record
     t_v, u_v, y_v = valid_record
     if base is None:
         _report(progress, "fitting the plain GPI on the identification data")
         base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
-    plain = no_effect(t_i, u_i, y_i, base)
+    chain = Chain((no_effect(t_i, u_i, y_i, base),), base)
     predicted_before = predict(base, u_v)
     before = error_metrics(y_v, predicted_before)
     tests_before = residual_tests(y_v - predicted_before, u_v, t_v)
     failed = [name for name, check in tests_before.checks.items() if not check.passed]
     _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
-    candidates, failures = [], {}
-    for name in rank_candidates(tests_before):
-        _report(progress, f"fitting candidate {name}")
-        try:
-            fit = fit_effect(name, t_i, u_i, y_i, base, progress)
-        except InputError as error:
-            failures[name] = str(error)
-            _report(progress, f"{name}: not fitted: {error}")
-            continue
-        candidates.append(_candidate(fit, plain, valid_record, before, fit.seconds))
-        _report(progress, f"{name}: {candidates[-1].reason}")
-    if operators is None:
-        leaders = sorted((c for c in candidates if c.accepted), key=lambda c: c.validation.rms_pct)[:RECOUNTED]
-        for leader in leaders:
-            try:
-                fit = recount_effect(leader.fit, t_i, u_i, y_i, progress)
-            except InputError as error:
-                _report(progress, f"{leader.effect}: operator count kept: {error}")
-                continue
-            if fit is not leader.fit:
-                candidates[candidates.index(leader)] = _candidate(fit, plain, valid_record, before,
-                                                                  leader.seconds + fit.seconds)
-    accepted = [c for c in candidates if c.accepted]
-    winner = min(accepted, key=lambda c: (c.validation.rms_pct, c.delta_bic)) if accepted else None
-    chosen = winner.fit if winner else plain
-    predicted_after = chosen.predict(t_v, u_v) if winner else predicted_before
+    rounds, current, tests = [], before, tests_before
+    while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
+        found = _search_round(chain, ident_record, valid_record, current, tests, operators is None and not rounds,
+                              progress)
+        rounds.append(found)
+        if found.winner is None:
+            break
+        chain = refine(chain.then(found.winner.fit), ident_record, progress=progress)
+        current = error_metrics(y_v, chain.predict(t_v, u_v))
+        tests = residual_tests(y_v - chain.predict(t_v, u_v), u_v, t_v)
+        _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
+    if operators is None and len(chain.effects) > 1:
+        chain = recount_last(chain, ident_record, progress)
+        current = error_metrics(y_v, chain.predict(t_v, u_v))
+        tests = residual_tests(y_v - chain.predict(t_v, u_v), u_v, t_v)
+    predicted_after = chain.predict(t_v, u_v) if chain.effects else predicted_before
     return Diagnosis(
-        effect=winner.effect if winner else "none",
+        effect=chain.effects[0] if chain.effects else "none",
+        effects=chain.effects,
         evidence=tests_before.evidence(),
-        parameters=dict(winner.parameters) if winner else {},
+        parameters=chain.parameters,
         before=before,
-        after=winner.validation if winner else before,
+        after=current,
         base=base,
-        chosen=chosen,
+        chain=chain,
         tests_before=tests_before,
-        tests_after=residual_tests(y_v - predicted_after, u_v, t_v) if winner else tests_before,
-        candidates=candidates,
+        tests_after=tests,
+        candidates=rounds[0].candidates if rounds else [],
+        rounds=rounds,
         validation_predicted_before=predicted_before,
         validation_predicted_after=predicted_after,
-        failures=failures,
+        failures=rounds[0].failures if rounds else {},
         seconds=time.perf_counter() - started,
     )
 

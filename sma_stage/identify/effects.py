@@ -45,12 +45,16 @@ CREEP_TAU_RANGE_FRACTION = (0.01, 1.0)  # creep time constant bounds, fractions 
 
 Progress = Callable[[str], None] | None
 Predictor = Callable[[np.ndarray, np.ndarray], np.ndarray]
+Transform = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (t [s], u [A]) -> the input the GPI sees [A]
+Offset = Callable[[np.ndarray], np.ndarray]  # t [s] -> what the effect adds to the output [output unit]
 
 
 @dataclass(frozen=True)
 class EffectFit:
     """A fitted candidate: its extra parameters (name -> value, units in the name), the GPI inside,
-    identification errors and the sum of squared residuals `cost` [output unit^2]."""
+    identification errors and the sum of squared residuals `cost` [output unit^2]. For a further
+    effect on top of it: the input transform and the output offset it adds to the GPI (None: none),
+    or composable False when it is neither (the rate effect changes the GPI itself)."""
 
     effect: str
     parameters: dict[str, float]
@@ -62,6 +66,9 @@ class EffectFit:
     parameter_count: int
     seconds: float
     predictor: Predictor = field(repr=False, compare=False)
+    input_transform: Transform | None = field(default=None, repr=False, compare=False)
+    output_offset: Offset | None = field(default=None, repr=False, compare=False)
+    composable: bool = True
 
     def predict(self, t: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Model output [output unit] for another record (time t [s], input u [A])."""
@@ -261,12 +268,14 @@ def _brent(cost: Callable[[float], float], left: float, right: float, tolerance:
 
 
 def _finish(effect: str, values: dict[str, float], gpi: GPIParameters, operators: int, y: np.ndarray,
-            predicted: np.ndarray, parameter_count: int, started: float, predictor: Predictor) -> EffectFit:
+            predicted: np.ndarray, parameter_count: int, started: float, predictor: Predictor,
+            **composition: object) -> EffectFit:
     residual = y - predicted
     return EffectFit(
         effect=effect, parameters=values, gpi_parameters=gpi, operators=int(operators),
         identification=error_metrics(y, predicted), cost=float(residual @ residual), samples=int(y.size),
         parameter_count=int(parameter_count), seconds=time.perf_counter() - started, predictor=predictor,
+        **composition,
     )
 
 
@@ -334,7 +343,8 @@ class InputTransformEffect(Effect):
             raise InputError(f"{self.name}: the GPI cannot be fitted at {self.parameter} = {value:.4g}")
         _report(progress, f"{self.name}: {self.parameter} = {value:.4g}, {gpi.operators} operators")
         return _finish(self.name, {self.parameter: value}, gpi.parameters, gpi.operators, y, gpi.predicted,
-                       parameter_count, started, lambda tv, uv: predict(gpi, self.transform(tv, uv, value)))
+                       parameter_count, started, lambda tv, uv: predict(gpi, self.transform(tv, uv, value)),
+                       input_transform=lambda tv, uv: self.transform(tv, uv, value))
 
 
 def _thinned(samples: int) -> np.ndarray:
@@ -399,7 +409,8 @@ class DriftEffect(Effect):
             values.update({"creep_m": float(coefficients[1]), "creep_tau_s": tau_c})
         _report(progress, "drift: " + ", ".join(f"{name} = {value:.4g}" for name, value in values.items()))
         return _finish(self.name, values, gpi.parameters, gpi.operators, y, gpi.predicted, parameter_count,
-                       started, lambda tv, uv: predict(gpi, uv, regressors=drift_regressors(tv, tau_c)))
+                       started, lambda tv, uv: predict(gpi, uv, regressors=drift_regressors(tv, tau_c)),
+                       output_offset=lambda tv: drift_regressors(tv, tau_c) @ coefficients)
 
 
 def _creep_time_constant(t: np.ndarray, y: np.ndarray, linear: FitResult) -> float:
@@ -460,7 +471,7 @@ class RateEffect(Effect):
         _report(progress, f"rate: rate_gain_s_per_A = {gain:.4g}, {operators} operators")
         return _finish(self.name, {"rate_gain_s_per_A": gain}, params, operators, y,
                        rate_model_output(t, u, params, operators, gain), parameter_count, started,
-                       lambda tv, uv: rate_model_output(tv, uv, params, operators, gain))
+                       lambda tv, uv: rate_model_output(tv, uv, params, operators, gain), composable=False)
 
 
 def _rate_fit(u: np.ndarray, rate: np.ndarray, y: np.ndarray, start_params: GPIParameters,

@@ -63,20 +63,24 @@ def markdown_summary(report: dict, title: str) -> str:
 
 
 def diagnosis_markdown(diagnosis: dict) -> list[str]:
-    """The diagnosis part of the summary: the effect, the evidence, the candidates."""
+    """The diagnosis part of the summary: the effects added, the evidence, each round's candidates."""
     before, after = diagnosis["before"]["validation"], diagnosis["after"]["validation"]
-    lines = ["", "## Diagnosis", "", f"Effect the GPI lacks: **{diagnosis['effect']}** "
-             f"{diagnosis['parameters'] if diagnosis['parameters'] else ''}", "",
+    added = " + ".join(diagnosis.get("effects") or [diagnosis["effect"]])
+    parameters = ", ".join(f"{key} = {value:.4g}" for key, value in diagnosis["parameters"].items())
+    lines = ["", "## Diagnosis", "", f"Effects the GPI lacks, in the order found: **{added}** {parameters}", "",
              f"Validation error before: RMS {before['rms_pct']:.3f} %, max {before['max_pct']:.3f} %; "
              f"after: RMS {after['rms_pct']:.3f} %, max {after['max_pct']:.3f} %.", "",
-             "| residual test | value and threshold |", "|---|---|"]
+             "| residual test (plain GPI) | value and threshold |", "|---|---|"]
     lines += [f"| {name} | {text} |" for name, text in diagnosis["evidence"].items()]
-    lines += ["", "| candidate | parameters | validation RMS % | delta BIC | kept | why |", "|---|---|---|---|---|---|"]
-    for candidate in diagnosis.get("candidates", []):
-        parameters = ", ".join(f"{key} = {value:.4g}" for key, value in candidate["parameters"].items())
-        lines.append(f"| {candidate['effect']} | {parameters} | {candidate['validation']['rms_pct']:.3f} | "
-                     f"{candidate['delta_bic']:.1f} | {'yes' if candidate['accepted'] else 'no'} | "
-                     f"{candidate['reason']} |")
+    rounds = diagnosis.get("rounds") or [{"added": diagnosis["effect"], "candidates": diagnosis.get("candidates", [])}]
+    for number, found in enumerate(rounds, start=1):
+        lines += ["", f"Round {number}: added **{found['added']}**.", "",
+                  "| candidate | parameters | validation RMS % | delta BIC | kept | why |", "|---|---|---|---|---|---|"]
+        for candidate in found["candidates"]:
+            values = ", ".join(f"{key} = {value:.4g}" for key, value in candidate["parameters"].items())
+            lines.append(f"| {candidate['effect']} | {values} | {candidate['validation']['rms_pct']:.3f} | "
+                         f"{candidate['delta_bic']:.1f} | {'yes' if candidate['accepted'] else 'no'} | "
+                         f"{candidate['reason']} |")
     return lines
 
 
@@ -106,7 +110,7 @@ def write_diagnosis_figures(out_dir: Path, valid: Series, diagnosis: Diagnosis, 
     from sma_stage.plots import Panel, save_panels
 
     before, after = diagnosis.validation_predicted_before, diagnosis.validation_predicted_after
-    label = f"GPI + {diagnosis.effect}" if diagnosis.effect != "none" else "GPI (nothing added)"
+    label = "GPI + " + " + ".join(diagnosis.effects) if diagnosis.effects else "GPI (nothing added)"
     loops = [
         Panel("validation loop: plain GPI", valid.input, [("measured", valid.output), ("GPI", before)],
               "input [A]", f"output [{unit}]"),
