@@ -380,6 +380,16 @@ def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
     probe.command_for(1e-4, reference.step(1e-4))
 
 
+def test_compensator_takes_the_lag_lead_while_running_and_refuses_a_negative_one(ros):
+    compensator = compensator_node(ros, rate_hz=2.0)
+    assert compensator.core.lag_tau_s == 0.0
+    assert compensator.set_parameters([Parameter("lag_tau_s", value=11.0)])[0].successful
+    assert compensator.core.lag_tau_s == 11.0 and compensator.inverse.params == DEFAULT_PARAMS
+    result = compensator.set_parameters([Parameter("lag_tau_s", value=-1.0)])[0]
+    assert not result.successful and "\n" not in result.reason
+    assert compensator.core.lag_tau_s == 11.0
+
+
 def test_compensator_refuses_a_missing_model_file_at_start(ros, tmp_path):
     with pytest.raises(InputError) as excinfo:
         CompensatorNode(context=ros.context, parameter_overrides=[Parameter("model_file", value=str(tmp_path / "no.yaml"))])

@@ -6,11 +6,13 @@ a1..a11 and operators, which can be set while running: a new set is validated wh
 invertibility) and refused with the reason when bad. `~/reload` reads model_file again and keeps the old
 model when the file is bad.
 
-Control law: target = setpoint + kp e + integral(ki e dt), e = setpoint - measured position [m] (feedback
-only; target = setpoint otherwise), current = inverse(target) within +-max_current. The integral runs on
-the node clock (simulated time with use_sim_time) and stops while the inverse saturates in the direction
-of the error (anti-windup). A command is published on each
-setpoint and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog).
+Control law (sma_stage.control.Compensator): target = setpoint + kp e + integral(ki e dt),
+e = setpoint - measured position [m] (feedback only; target = setpoint otherwise), v = inverse(target)
+within +-max_current, current = v + lag_tau_s dv/dt clipped to +-max_current (a lead that undoes the
+wires' thermal lag; lag_tau_s = 0: current = v). The integral and dv/dt run on the node clock (simulated
+time with use_sim_time); the integral stops while the command saturates in the direction of the error
+(anti-windup). A command is published on each setpoint and, once a setpoint came, every 1/rate_hz s
+(which also feeds the stage's watchdog).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
+from sma_stage.control import Compensator
 from sma_stage.errors import InputError
 from sma_stage.model import PARAMETER_NAMES, GPIInverseStream, GPIParameters, load_model_file
 from sma_stage.model.inverse import METHODS
@@ -60,6 +63,8 @@ COMPENSATOR_PARAMS = [
     Param("feedback", False, "close a PI loop on the measured position from joint_states"),
     Param("kp", 1.0, "proportional gain on the position error [m/m] (feedback mode)", 0.0, 100.0),
     Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (feedback mode)", 0.0, 10000.0),
+    Param("lag_tau_s", 0.0, "thermal lag time constant [s of node-clock time] the lead undoes; 0: no lead",
+          0.0, 1000.0),
     Param("rate_hz", 50.0, "command republication and PI loop rate [Hz]", 0.1, 2000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
@@ -94,15 +99,13 @@ class CompensatorNode(Node):
                                                          for name in MODEL_PARAMETERS])
                 if not result.successful:
                     raise InputError(f"model file {self.values['model_file']}: {result.reason}")
-            self.inverse = build_inverse(self.values)
+            self.core = Compensator(build_inverse(self.values), **self.gains(self.values))
         except InputError as error:
             self.destroy_node()
             raise InputError(f"node 'compensator': {error}") from None
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.setpoint_m: float | None = None
         self.measured_m: float | None = None
-        self.integral_m = 0.0
-        self.command_a = 0.0
         self.clipped_count = 0
         self._last_step = None
         self._last_warning: dict[str, object] = {}
@@ -114,6 +117,26 @@ class CompensatorNode(Node):
         self.period_s = 1.0 / float(self.values["rate_hz"])
         self.create_timer(self.period_s, self.on_tick, clock=self.steady)
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
+
+    @staticmethod
+    def gains(values: dict[str, object]) -> dict[str, float]:
+        """The control core's gains from the node's parameter values."""
+        return {name: float(values[name]) for name in ("lag_tau_s", "kp", "ki")}
+
+    @property
+    def inverse(self) -> GPIInverseStream:
+        """The streaming GPI inverse in force."""
+        return self.core.inverse
+
+    @property
+    def integral_m(self) -> float:
+        """The PI loop's integral term [m]."""
+        return self.core.integral_m
+
+    @property
+    def command_a(self) -> float:
+        """The last current command [A]."""
+        return self.core.command_a
 
     def describe_model(self) -> str:
         """One line naming the model in force."""
@@ -138,9 +161,10 @@ class CompensatorNode(Node):
             return SetParametersResult(successful=False, reason=str(error))
         with self._lock:
             self.values = candidate
+            for name, value in self.gains(candidate).items():
+                setattr(self.core, name, value)
             if inverse is not None:
-                self.inverse = inverse
-                self.integral_m = 0.0
+                self.core.set_inverse(inverse)
         if rebuild:
             self.get_logger().info(f"model updated: {self.describe_model()}")
         return SetParametersResult(successful=True)
@@ -173,7 +197,7 @@ class CompensatorNode(Node):
             return
         with self._lock:
             self.setpoint_m = value
-            self.publish_command(self.compute_command(0.0))
+            self.publish_command(self.compute_command(self.elapsed_s()))
 
     def on_joint_states(self, message: JointState) -> None:
         """Keep the latest measured position [m]."""
@@ -194,28 +218,23 @@ class CompensatorNode(Node):
                 self.publish_command(self.command_a)
 
     def elapsed_s(self) -> float:
-        """Node-clock seconds since the previous PI step (simulated time with use_sim_time)."""
+        """Node-clock seconds since the previous command computed, 0 for the first (simulated time with
+        use_sim_time)."""
         now = self.get_clock().now()
         previous, self._last_step = self._last_step, now
         if previous is None:
-            return self.period_s
+            return 0.0
         return max((now - previous).nanoseconds * 1e-9, 0.0)
 
     def compute_command(self, dt_s: float) -> float:
-        """Current [A] for the setpoint, integrating the position error over dt_s [s] in feedback mode."""
-        target = self.setpoint_m
-        if self.values["feedback"] and self.measured_m is not None:
-            error = self.setpoint_m - self.measured_m
-            integral = self.integral_m + float(self.values["ki"]) * error * dt_s
-            if self.inverse.last_clipped * error <= 0.0:
-                self.integral_m = integral
-            target = self.setpoint_m + float(self.values["kp"]) * error + self.integral_m
-        self.command_a = self.inverse.step(target)
+        """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral, lead's rate)."""
+        measured = self.measured_m if self.values["feedback"] else None
+        current = self.core.command(self.setpoint_m, measured, dt_s)
         if self.inverse.last_clipped:
             self.clipped_count += 1
-            self._warn("clipped", f"target {target:.4g} m is beyond the model's reach within "
+            self._warn("clipped", f"target {self.core.target_m:.4g} m is beyond the model's reach within "
                                   f"+-{self.values['max_current']:g} A: current at its limit")
-        return self.command_a
+        return current
 
     def publish_command(self, current_a: float) -> None:
         """Publish a current command [A]."""

@@ -1,0 +1,161 @@
+"""The compensator's control law (no ROS): the inverse GPI model, an optional thermal-lag lead, a PI loop.
+
+Per call, with e = setpoint - measured position [m] when a measurement is given (feedback):
+
+    integral += ki e dt, except while the command saturates in the direction of e (anti-windup)
+    target    = setpoint + kp e + integral                      (target = setpoint without feedback)
+    v*        = GPI inverse(target)                             within the inverse's input range [A]
+    current   = the lead: v* + tau dv*/dt in the limit of short steps, clipped to the input range
+                (tau = 0: current = v*)
+
+The lead inverts the thermal lag tau v' = u - v that `identify.effects` fits (the GPI sees v, not the
+current u). It keeps the lag's state v, advanced exactly over each step with the command actually sent
+(held constant, as the stage holds it), and sends the current that brings v to v* at the end of a step
+as long as the last positive dt_s: u = (v* - a v) / (1 - a), a = exp(-dt / tau). Unclipped and with v
+on v*'s previous value this is v* + a / (1 - a) (v* - v*_previous) ~ v* + tau dv*/dt; when the clip
+stops the current short, v lags v* and the lead keeps pushing on the following steps. The state starts
+at 0 A (an idle stage, as the identification assumes). With power_lag the lag filters u |u| / limit
+instead of u (the wires' heating is i^2 R) and the lead works in those units.
+"""
+
+from __future__ import annotations
+
+import math
+
+from sma_stage.errors import InputError
+from sma_stage.model import GPIInverseStream
+
+
+def _finite(name: str, value: float) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise InputError(f"{name} must be finite, got {value!r}")
+    return number
+
+
+def _non_negative(name: str, value: float) -> float:
+    number = _finite(name, value)
+    if number < 0.0:
+        raise InputError(f"{name} must be at least 0, got {value!r}")
+    return number
+
+
+class Compensator:
+    """Setpoint [m] (and measured position [m]) in, current [A] out; see the module's docstring.
+
+    inverse: the streaming GPI inverse (its input_range is the current limit [A]); lag_tau_s: the thermal
+    lag's time constant [s] (0: no lead); kp [m/m] and ki [1/s]: the PI gains (used only when a
+    measurement is given); power_lag: the lag filters the Joule heating u |u| / limit [A] (signed by the
+    relay, limit = the larger end of the input range) instead of the current u, and the model's input
+    v is in those units: the lead then sends the current whose heating it wants.
+    """
+
+    def __init__(self, inverse: GPIInverseStream, lag_tau_s: float = 0.0, kp: float = 0.0,
+                 ki: float = 0.0, power_lag: bool = False) -> None:
+        self.power_lag = bool(power_lag)
+        self.lag_tau_s = lag_tau_s
+        self.kp = kp
+        self.ki = ki
+        self.command_a = 0.0
+        self.set_inverse(inverse)
+
+    @property
+    def lag_tau_s(self) -> float:
+        """Time constant of the thermal lag the lead inverts [s]; 0 turns the lead off."""
+        return self._lag_tau_s
+
+    @lag_tau_s.setter
+    def lag_tau_s(self, value: float) -> None:
+        self._lag_tau_s = _non_negative("lag_tau_s", value)
+
+    @property
+    def kp(self) -> float:
+        """Proportional gain [m of target per m of error]."""
+        return self._kp
+
+    @kp.setter
+    def kp(self, value: float) -> None:
+        self._kp = _non_negative("kp", value)
+
+    @property
+    def ki(self) -> float:
+        """Integral gain [1/s]."""
+        return self._ki
+
+    @ki.setter
+    def ki(self, value: float) -> None:
+        self._ki = _non_negative("ki", value)
+
+    @property
+    def inverse(self) -> GPIInverseStream:
+        """The streaming GPI inverse in use."""
+        return self._inverse
+
+    def set_inverse(self, inverse: GPIInverseStream) -> None:
+        """Use another inverse (a new model); the integral and the lead's history start again."""
+        if not isinstance(inverse, GPIInverseStream):
+            raise InputError(f"inverse must be a GPIInverseStream, got {type(inverse).__name__}")
+        self._inverse = inverse
+        self.reset()
+
+    def reset(self) -> None:
+        """Integral to 0, the lag's state to an idle stage (the inverse keeps its states)."""
+        self.integral_m = 0.0
+        self.target_m = 0.0
+        self.saturated = 0
+        self.lag_state_a = 0.0
+        self._hold_s = 0.0
+
+    def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0) -> float:
+        """The current [A] for setpoint_m [m]; with measured_m [m] the PI loop acts, integrating the error
+        over dt_s [s], the time since the previous call (0 for a call at the same instant)."""
+        setpoint = _finite("setpoint_m", setpoint_m)
+        dt = _non_negative("dt_s", dt_s)
+        self.target_m = setpoint
+        if measured_m is not None:
+            self.target_m = self._pi_target(setpoint, _finite("measured_m", measured_m), dt)
+        lag_input = self._inverse.step(self.target_m)
+        self.command_a = self._lead(lag_input, dt)
+        return self.command_a
+
+    def _pi_target(self, setpoint: float, measured: float, dt: float) -> float:
+        error = setpoint - measured
+        if self.saturated * error <= 0.0:
+            self.integral_m += self._ki * error * dt
+        return setpoint + self._kp * error + self.integral_m
+
+    def _lead(self, lag_input: float, dt: float) -> float:
+        if dt > 0.0:
+            self._hold_s = dt
+            self.lag_state_a = self._lagged(self.lag_state_a, self._heating(self.command_a), dt)
+        wanted = lag_input
+        if self._lag_tau_s > 0.0 and self._hold_s > 0.0:
+            kept = math.exp(-self._hold_s / self._lag_tau_s)
+            wanted = (lag_input - kept * self.lag_state_a) / (1.0 - kept)
+        low, high = (self._heating(limit) for limit in self._inverse.input_range)
+        clipped = min(high, max(low, wanted))
+        self.saturated = self._inverse.last_clipped or (wanted > clipped) - (wanted < clipped)
+        return self._current_for(clipped)
+
+    def _limit_a(self) -> float:
+        """The current limit [A]: the larger end of the inverse's input range."""
+        return max(abs(limit) for limit in self._inverse.input_range)
+
+    def _heating(self, current_a: float) -> float:
+        """What the lag filters [A]: the current, or with power_lag u |u| / limit."""
+        return current_a * abs(current_a) / self._limit_a() if self.power_lag else current_a
+
+    def _current_for(self, heating: float) -> float:
+        """The current [A] whose heating (see _heating) is `heating` [A]."""
+        if not self.power_lag:
+            return heating
+        return math.copysign(math.sqrt(abs(heating) * self._limit_a()), heating)
+
+    def _lagged(self, state_a: float, current_a: float, dt: float) -> float:
+        """The lag's state [A] after current_a [A] held for dt [s] from state_a."""
+        if self._lag_tau_s == 0.0:
+            return current_a
+        return current_a + (state_a - current_a) * math.exp(-dt / self._lag_tau_s)

@@ -1,0 +1,113 @@
+"""The control core: the lag lead, the PI loop with anti-windup, and its input checks (no ROS)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sma_stage.control import Compensator
+from sma_stage.demo import DEFAULT_MODEL
+from sma_stage.errors import InputError
+from sma_stage.model import GPIForwardStream, GPIInverseStream, load_model_file
+
+MODEL = load_model_file(DEFAULT_MODEL)
+LIMIT_A = 5.0
+
+
+def inverse_stream(method: str = "exact", limit_a: float = LIMIT_A) -> GPIInverseStream:
+    return GPIInverseStream(MODEL.parameters, MODEL.operators, method, input_range=(-limit_a, limit_a))
+
+
+def slow_setpoints(steps: int, dt_s: float) -> np.ndarray:
+    """A smooth setpoint [m] within the default model's reach."""
+    t = dt_s * np.arange(steps)
+    return 5e-5 + 1.5e-4 * np.sin(2.0 * np.pi * t / 200.0) + 5e-5 * np.sin(2.0 * np.pi * t / 70.0)
+
+
+def lag_input(current_a: float, power_lag: bool) -> float:
+    return current_a * abs(current_a) / LIMIT_A if power_lag else current_a
+
+
+@pytest.mark.parametrize("power_lag", [False, True])
+def test_the_lead_undoes_a_first_order_lag_exactly(power_lag):
+    tau_s, dt_s = 8.0, 0.2
+    setpoints = slow_setpoints(3000, dt_s)
+    wanted = inverse_stream().run(setpoints)[0]
+    core = Compensator(inverse_stream(), lag_tau_s=tau_s, power_lag=power_lag)
+    kept = math.exp(-dt_s / tau_s)
+    lagged, unclipped = 0.0, 0
+    for setpoint, target in zip(setpoints, wanted, strict=True):
+        current = core.command(setpoint, None, dt_s)
+        drive = lag_input(current, power_lag)
+        lagged = drive + (lagged - drive) * kept  # the current held for dt_s through tau v' = u - v
+        if core.saturated == 0:
+            unclipped += 1
+            assert lagged == pytest.approx(target, abs=1e-12)
+    assert unclipped >= 0.99 * len(setpoints)
+
+
+def test_the_lead_tends_to_v_plus_tau_dv_dt_for_short_steps():
+    tau_s, dt_s = 8.0, 0.001
+    setpoints = slow_setpoints(20000, dt_s)[10000:]
+    wanted = inverse_stream().run(setpoints)[0]
+    core = Compensator(inverse_stream(), lag_tau_s=tau_s)
+    currents = np.array([core.command(setpoint, None, dt_s) for setpoint in setpoints])
+    expected = wanted[1:] + tau_s * np.diff(wanted) / dt_s
+    settled = slice(6000, None)  # the lag starts idle, at 0 A: 6 s to catch up at the current limit
+    assert np.max(np.abs(currents[1:][settled] - expected[settled])) < 1e-3 * LIMIT_A
+
+
+@pytest.mark.parametrize("method", ["exact", "analytic"])
+def test_without_lead_or_feedback_the_core_is_the_streaming_inverse(method):
+    setpoints = slow_setpoints(500, 1.0)
+    core = Compensator(inverse_stream(method), kp=3.0, ki=5.0)
+    reference = inverse_stream(method).run(setpoints)[0]
+    commands = [core.command(setpoint, None, 1.0) for setpoint in setpoints]
+    assert np.array_equal(commands, reference)
+
+
+def test_anti_windup_stops_the_integral_while_the_command_saturates():
+    core = Compensator(inverse_stream(limit_a=2.0), ki=20.0)
+    commands = [core.command(1e-4, 0.0, 0.01) for _ in range(400)]
+    assert commands[-1] == 2.0 and core.saturated == 1
+    wound = core.integral_m
+    for _ in range(100):
+        core.command(1e-4, 0.0, 0.01)
+    assert core.integral_m == wound
+    assert core.command(1e-4, 3e-4, 0.01) < 2.0, "the command leaves saturation at once"
+
+
+def test_anti_windup_also_holds_when_the_lead_saturates():
+    core = Compensator(inverse_stream(), lag_tau_s=50.0, ki=1.0)
+    core.command(0.0, 0.0, 0.1)
+    assert core.command(3e-4, 0.0, 0.1) == LIMIT_A and core.saturated == 1
+    wound = core.integral_m
+    core.command(3e-4, 0.0, 0.1)
+    assert core.integral_m == wound
+
+
+def test_pi_removes_a_constant_offset_of_the_plant():
+    offset_m, dt_s = 3e-5, 0.1
+    plant = GPIForwardStream(MODEL.parameters, MODEL.operators)
+    core = Compensator(inverse_stream(), kp=0.5, ki=2.0)
+    position = plant.step(0.0) + offset_m
+    for _ in range(600):
+        position = plant.step(core.command(1e-4, position, dt_s)) + offset_m
+    assert position == pytest.approx(1e-4, abs=1e-9)
+    assert core.integral_m == pytest.approx(-offset_m, rel=0.05)
+
+
+@pytest.mark.parametrize(("call", "name"), [
+    (lambda core: core.command(float("nan")), "setpoint_m"),
+    (lambda core: core.command(1e-4, float("inf"), 0.1), "measured_m"),
+    (lambda core: core.command(1e-4, None, -0.1), "dt_s"),
+    (lambda core: setattr(core, "lag_tau_s", -1.0), "lag_tau_s"),
+    (lambda core: setattr(core, "ki", float("nan")), "ki"),
+    (lambda core: Compensator(inverse_stream(), lag_tau_s=-2.0), "lag_tau_s"),
+    (lambda core: Compensator("not an inverse"), "inverse"),
+])
+def test_bad_input_is_refused_with_one_line(call, name):
+    core = Compensator(inverse_stream())
+    with pytest.raises(InputError) as excinfo:
+        call(core)
+    assert name in str(excinfo.value) and "\n" not in str(excinfo.value)
