@@ -6,9 +6,11 @@ Selection rule, in each round: a candidate is accepted when its BIC on the ident
 least BIC_MARGIN below the current model's AND its validation RMS error is below the current model's by
 at least VALIDATION_MARGIN (relative) in the first round, LATER_VALIDATION_MARGIN in later ones; of the
 accepted ones the lowest validation RMS wins (the lower BIC on a tie). A round with none accepted ends
-the search. Later rounds are greedy: the effects found so far keep their parameters and the candidate is
-fitted on the input and output they make (the GPI refitted with it); each effect enters at most once, and
-none follows `rate` (it changes the GPI itself rather than its input or output).
+the search. In a later round the candidate is fitted on the input and output the effects found so far
+make (the GPI refitted with it), then every effect of the model is fitted again on top of the others
+(backfitting, `refine`) before it is judged: a lag found first holds part of a later dead time or drift.
+Each effect enters at most once, and none follows `rate` (it changes the GPI itself rather than its input
+or output).
 """
 
 from __future__ import annotations
@@ -52,8 +54,9 @@ Progress = Callable[[str], None] | None
 
 @dataclass(frozen=True)
 class CandidateResult:
-    """One fitted candidate, judged: BIC difference to the plain GPI (negative favours the candidate),
-    validation errors, and why it was accepted or refused."""
+    """One fitted candidate, judged: BIC difference to the model it was fitted on (negative favours the
+    candidate), validation errors, why it was accepted or refused, and the model with it (in a later
+    round, every effect fitted again on top of the others; parameters are then the whole model's)."""
 
     effect: str
     parameters: dict[str, float]
@@ -64,6 +67,7 @@ class CandidateResult:
     reason: str
     seconds: float
     fit: EffectFit = field(repr=False, compare=False)
+    model: Chain | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict[str, object]:
         """Plain values for the JSON report."""
@@ -253,15 +257,19 @@ def judge(delta_bic: float, validation: ErrorMetrics, before: ErrorMetrics,
     return True, f"BIC change {delta_bic:+.1f}, validation RMS {before.rms_pct:.3g} % -> {validation.rms_pct:.3g} %"
 
 
-def _candidate(chain: Chain, fit: EffectFit, valid: Record, before: ErrorMetrics, seconds: float,
-               margin: float) -> CandidateResult:
+def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Record, before: ErrorMetrics, started: float,
+               margin: float, progress: Progress) -> CandidateResult:
+    """Judge the chain with fit on top; in a later round its effects are first fitted again together."""
     extended = chain.then(fit)
+    if len(chain.stages) > 1:
+        extended = refine(extended, ident, progress=progress)
     t_v, u_v, y_v = valid
     validation = error_metrics(y_v, extended.predict(t_v, u_v))
     delta_bic = extended.bic - chain.bic
     accepted, reason = judge(delta_bic, validation, before, margin)
-    return CandidateResult(fit.effect, fit.parameters, fit.identification, validation, delta_bic, accepted, reason,
-                           seconds, fit)
+    parameters = fit.parameters if len(chain.stages) == 1 else extended.parameters
+    return CandidateResult(fit.effect, parameters, extended.last.identification, validation, delta_bic, accepted,
+                           reason, time.perf_counter() - started, fit, extended)
 
 
 def _search_round(chain: Chain, ident: Record, valid: Record, before: ErrorMetrics, tests: ResidualTests,
@@ -277,13 +285,14 @@ def _search_round(chain: Chain, ident: Record, valid: Record, before: ErrorMetri
     candidates, failures = [], {}
     for name in (effect for effect in rank_candidates(tests) if effect not in chain.effects):
         _report(progress, f"fitting candidate {name}" + ("" if first else f" on top of {' + '.join(chain.effects)}"))
+        started = time.perf_counter()
         try:
             fit = fit_effect(name, t_i, v_i, w_i, base, progress)
         except InputError as error:
             failures[name] = str(error)
             _report(progress, f"{name}: not fitted: {error}")
             continue
-        candidates.append(_candidate(chain, fit, valid, before, fit.seconds, margin))
+        candidates.append(_candidate(chain, fit, ident, valid, before, started, margin, progress))
         _report(progress, f"{name}: {candidates[-1].reason}")
     if recount:
         leaders = sorted((c for c in candidates if c.accepted), key=lambda c: c.validation.rms_pct)[:RECOUNTED]
@@ -294,8 +303,9 @@ def _search_round(chain: Chain, ident: Record, valid: Record, before: ErrorMetri
                 _report(progress, f"{leader.effect}: operator count kept: {error}")
                 continue
             if fit is not leader.fit:
-                candidates[candidates.index(leader)] = _candidate(chain, fit, valid, before,
-                                                                  leader.seconds + fit.seconds, margin)
+                candidates[candidates.index(leader)] = _candidate(chain, fit, ident, valid, before,
+                                                                  time.perf_counter() - leader.seconds - fit.seconds,
+                                                                  margin, progress)
     accepted = [c for c in candidates if c.accepted]
     winner = min(accepted, key=lambda c: (c.validation.rms_pct, c.delta_bic)) if accepted else None
     return Round(before, candidates, failures, winner)
@@ -374,8 +384,8 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         rounds.append(found)
         if found.winner is None:
             break
-        chain = refine(chain.then(found.winner.fit), ident_record, progress=progress)
-        current = error_metrics(y_v, chain.predict(t_v, u_v))
+        chain = found.winner.model
+        current = found.winner.validation
         tests = residual_tests(y_v - chain.predict(t_v, u_v), u_v, t_v)
         _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
     if operators is None and len(chain.effects) > 1:
