@@ -385,9 +385,17 @@ def test_compensator_takes_the_lag_lead_while_running_and_refuses_a_negative_one
     assert compensator.core.lag_tau_s == 0.0
     assert compensator.set_parameters([Parameter("lag_tau_s", value=11.0)])[0].successful
     assert compensator.core.lag_tau_s == 11.0 and compensator.inverse.params == DEFAULT_PARAMS
-    result = compensator.set_parameters([Parameter("lag_tau_s", value=-1.0)])[0]
-    assert not result.successful and "\n" not in result.reason
-    assert compensator.core.lag_tau_s == 11.0
+    probe = CompensatorProbe(ros, compensator)
+    plain = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-5.0, 5.0)).step(2e-4)
+    probe.setpoint_pub.publish(Float64(data=2e-4))
+    wait_until(lambda: probe.latest() is not None and probe.latest() > plain + 0.1, 5.0,
+               "the lead to push the current beyond the inverse's output")
+    wait_until(lambda: abs(probe.latest() - plain) < 0.05, 30.0,
+               f"the lead's current to settle on the inverse's output (latest {probe.latest()!r})")
+    for name, bad in (("lag_tau_s", -1.0), ("kp", math.nan), ("ki", math.inf)):
+        result = compensator.set_parameters([Parameter(name, value=bad)])[0]
+        assert not result.successful and "\n" not in result.reason
+    assert (compensator.core.lag_tau_s, compensator.core.kp, compensator.core.ki) == (11.0, 1.0, 0.1)
 
 
 def test_compensator_refuses_a_missing_model_file_at_start(ros, tmp_path):

@@ -43,6 +43,15 @@ def _non_negative(name: str, value: float) -> float:
     return number
 
 
+GAIN_PARAMETERS = ("lag_tau_s", "kp", "ki")
+
+
+def checked_gains(lag_tau_s: float, kp: float, ki: float) -> dict[str, float]:
+    """The gains (lag [s], kp [m/m], ki [1/s]) as floats; InputError unless each is finite and >= 0."""
+    values = {"lag_tau_s": lag_tau_s, "kp": kp, "ki": ki}
+    return {name: _non_negative(name, value) for name, value in values.items()}
+
+
 class Compensator:
     """Setpoint [m] (and measured position [m]) in, current [A] out; see the module's docstring.
 
@@ -154,8 +163,8 @@ class Compensator:
             return heating
         return math.copysign(math.sqrt(abs(heating) * self._limit_a()), heating)
 
-    def _lagged(self, state_a: float, current_a: float, dt: float) -> float:
-        """The lag's state [A] after current_a [A] held for dt [s] from state_a."""
+    def _lagged(self, state_a: float, drive_a: float, dt: float) -> float:
+        """The lag's state [A] after its input drive_a [A] (see _heating) held for dt [s] from state_a."""
         if self._lag_tau_s == 0.0:
-            return current_a
-        return current_a + (state_a - current_a) * math.exp(-dt / self._lag_tau_s)
+            return drive_a
+        return drive_a + (state_a - drive_a) * math.exp(-dt / self._lag_tau_s)

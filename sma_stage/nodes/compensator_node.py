@@ -12,7 +12,8 @@ within +-max_current, current = v + lag_tau_s dv/dt clipped to +-max_current (a 
 wires' thermal lag; lag_tau_s = 0: current = v). The integral and dv/dt run on the node clock (simulated
 time with use_sim_time); the integral stops while the command saturates in the direction of the error
 (anti-windup). A command is published on each setpoint and, once a setpoint came, every 1/rate_hz s
-(which also feeds the stage's watchdog).
+(which also feeds the stage's watchdog): computed again in feedback mode or with the lead on, the last one
+repeated otherwise.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from sma_stage.control import Compensator
+from sma_stage.control.compensator import GAIN_PARAMETERS, checked_gains
 from sma_stage.errors import InputError
 from sma_stage.model import PARAMETER_NAMES, GPIInverseStream, GPIParameters, load_model_file
 from sma_stage.model.inverse import METHODS
@@ -120,8 +122,8 @@ class CompensatorNode(Node):
 
     @staticmethod
     def gains(values: dict[str, object]) -> dict[str, float]:
-        """The control core's gains from the node's parameter values."""
-        return {name: float(values[name]) for name in ("lag_tau_s", "kp", "ki")}
+        """The control core's gains from the node's parameter values (InputError when one is unusable)."""
+        return checked_gains(**{name: values[name] for name in GAIN_PARAMETERS})
 
     @property
     def inverse(self) -> GPIInverseStream:
@@ -157,11 +159,12 @@ class CompensatorNode(Node):
         rebuild = any(change.name in REBUILD_PARAMETERS for change in changes)
         try:
             inverse = build_inverse(candidate) if rebuild else None
+            gains = self.gains(candidate)
         except InputError as error:
             return SetParametersResult(successful=False, reason=str(error))
         with self._lock:
             self.values = candidate
-            for name, value in self.gains(candidate).items():
+            for name, value in gains.items():
                 setattr(self.core, name, value)
             if inverse is not None:
                 self.core.set_inverse(inverse)
@@ -208,11 +211,11 @@ class CompensatorNode(Node):
             self.measured_m = float(message.position[index])
 
     def on_tick(self) -> None:
-        """Fixed-rate step: the PI update (feedback) or a repeat of the command (feedforward)."""
+        """Fixed-rate step: the PI and lead update (feedback, or lag_tau_s > 0) or a repeat of the command."""
         with self._lock:
             if self.setpoint_m is None:
                 return
-            if self.values["feedback"]:
+            if self.values["feedback"] or self.core.lag_tau_s > 0.0:
                 self.publish_command(self.compute_command(self.elapsed_s()))
             else:
                 self.publish_command(self.command_a)
