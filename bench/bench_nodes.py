@@ -355,11 +355,12 @@ def latency_cases(args: argparse.Namespace) -> list[Case]:
     """The target case first, then the comparisons."""
     model = ("-p", f"model_file:={MODEL_FILE}", "-p", "rate_hz:=0.1")
     cases = [Case("compensator_node (installed executable)", node_command("compensator_node", *model))]
-    if args.events:
-        cases.append(Case("compensator, EventsExecutor", runner_command("compensator", "events", *model)))
-    cases.append(Case("echo node (no model)", runner_command("echo", "single"), echo=True))
-    if args.events:
-        cases.append(Case("echo node (no model), EventsExecutor", runner_command("echo", "events"), echo=True))
+    if args.compare:
+        cases.append(Case("compensator, SingleThreadedExecutor", runner_command("compensator", "single", *model)))
+    cases.append(Case("echo node (no model)", runner_command("echo", "events"), echo=True))
+    if args.compare:
+        cases.append(Case("echo node (no model), SingleThreadedExecutor", runner_command("echo", "single"),
+                          echo=True))
     cases.append(Case("compensator in the probe's process and executor", None))
     return cases
 
@@ -378,8 +379,8 @@ def latency_table(args: argparse.Namespace) -> float:
           f"{WARMUP_SETPOINTS} warm-up ones, reliable QoS depth 10)\n")
     print("Round trip timed in the probe, from just before `publish(setpoint)` to the entry of its `current_cmd`")
     print("callback, so it includes the probe's own SingleThreadedExecutor. Separate processes unless the row")
-    print("says otherwise; executor SingleThreadedExecutor (as the installed executables) unless it says")
-    print("EventsExecutor (bench/node_runner.py). Node CPU: the node process's user+system time per setpoint.")
+    print("says otherwise; executor EventsExecutor (as the installed executables) unless it says")
+    print("SingleThreadedExecutor (bench/node_runner.py). Node CPU: the node process's user+system time per setpoint.")
     print("Lost: setpoints never answered (dropped from a full depth-10 queue); unmatched: replies that answer")
     print("no pending setpoint (the compensator repeats its last command every 1/rate_hz = 10 s).\n")
     print("| path | replies | lost | unmatched | p50 [ms] | p99 [ms] | max [ms] | node CPU per setpoint [us] |")
@@ -502,11 +503,11 @@ def missing_messages(stamps_ns: np.ndarray, period_ns: float) -> tuple[int, int]
 
 
 def stage_cases(args: argparse.Namespace) -> list[Case]:
-    """The target case first, then the EventsExecutor comparison."""
+    """The target case first, then the SingleThreadedExecutor comparison."""
     rate = ("-p", f"rate_hz:={float(args.stage_rate)!r}")
     cases = [Case("stage_node (installed executable)", node_command("stage_node", *rate))]
-    if args.events:
-        cases.append(Case("stage, EventsExecutor", runner_command("stage", "events", *rate)))
+    if args.compare:
+        cases.append(Case("stage, SingleThreadedExecutor", runner_command("stage", "single", *rate)))
     return cases
 
 
@@ -559,8 +560,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--domain-id", type=int, default=220 + os.getpid() % 13,
                         help="ROS domain id (default 220..232, away from the tests' domains)")
     parser.add_argument("--bin-dir", type=Path, default=None, help="directory of the installed node executables")
-    parser.add_argument("--no-events", dest="events", action="store_false",
-                        help="skip the EventsExecutor comparison rows")
+    parser.add_argument("--no-compare", dest="compare", action="store_false",
+                        help="skip the SingleThreadedExecutor comparison rows")
     parser.add_argument("--skip-latency", action="store_true", help="skip the setpoint -> current_cmd table")
     parser.add_argument("--skip-stage", action="store_true", help="skip the stage timing tables")
     args = parser.parse_args(argv)

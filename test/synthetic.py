@@ -156,7 +156,8 @@ def main(argv: list[str] | None = None) -> None:
             result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y))
             floor = valid.noise_floor_pct
             parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
-            print(f"| {seed} | {effect} | {result.effect} | {result.before.rms_pct:.3f} | {result.after.rms_pct:.3f} "
+            named = " + ".join(result.effects) or "none"
+            print(f"| {seed} | {effect} | {named} | {result.before.rms_pct:.3f} | {result.after.rms_pct:.3f} "
                   f"| {floor:.3f} | {result.after.rms_pct / floor:.2f} | {parameters} "
                   f"| {result.base.operators} -> {result.chosen.operators} "
                   f"| {time.process_time() - started:.1f} |", flush=True)

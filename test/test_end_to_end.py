@@ -74,8 +74,7 @@ def test_executables_excite_refit_push_and_track(tmp_path):
             wait_for(lambda: len(seen.positions) > 10, 30.0, "joint_states", nodes.check_running)
             report = refit_after_excitation(client, nodes.check_running)
             assert report["compensator"]["pushed"], report["compensator"]["message"]
-            nominal = EXCITE_S  # one stage step per simulated second; a busy machine loses some messages
-            assert report["samples"]["identification"] + report["samples"]["validation"] >= 0.4 * nominal
+            assert report["samples"]["identification"] + report["samples"]["validation"] >= 60, "min_samples"
             fitted = GPIParameters.from_dict(report["model"]["parameters"])
             held = client.get_parameters("compensator", [*PARAMETER_NAMES, "operators"])
             assert held == {**report["model"]["parameters"], "operators": 5}, "the compensator holds the fit"
