@@ -114,18 +114,19 @@ def runner_command(node: str, executor: str, *ros_args: str) -> list[str]:
 
 
 class Ros:
-    """A private rclpy context with a single-threaded executor the benchmark spins itself."""
+    """A private rclpy context with an executor the benchmark spins itself: rclpy's EventsExecutor, as the
+    nodes use, so the probe's own overhead weighs as little as theirs."""
 
     def __init__(self, domain_id: int) -> None:
         import rclpy
         from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.experimental import EventsExecutor
         from rclpy.signals import SignalHandlerOptions
 
         self.context = Context()
         # Keep Python's Ctrl-C (KeyboardInterrupt), so the finally blocks stop the node processes.
         rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = EventsExecutor(context=self.context)
         self.nodes: list = []
 
     def add(self, node):
@@ -378,7 +379,7 @@ def latency_table(args: argparse.Namespace) -> float:
     print(f"\n### setpoint -> current_cmd ({args.setpoints} setpoints at {args.setpoint_rate:g} Hz after "
           f"{WARMUP_SETPOINTS} warm-up ones, reliable QoS depth 10)\n")
     print("Round trip timed in the probe, from just before `publish(setpoint)` to the entry of its `current_cmd`")
-    print("callback, so it includes the probe's own SingleThreadedExecutor. Separate processes unless the row")
+    print("callback, so it includes the probe's own executor (EventsExecutor). Separate processes unless the row")
     print("says otherwise; executor EventsExecutor (as the installed executables) unless it says")
     print("SingleThreadedExecutor (bench/node_runner.py). Node CPU: the node process's user+system time per setpoint.")
     print("Lost: setpoints never answered (dropped from a full depth-10 queue); unmatched: replies that answer")

@@ -2,9 +2,9 @@
 
 Identification: the paper's identification signal (1000 s) drives the simulator, stepped every
 PLANT_STEP_S; the record kept every RECORD_EVERY steps is fitted with a GPI (fit_gpi's own operator
-count), with the thermal_lag effect (the GPI sees the current through tau v' = u - v; its operator count
-chosen again) and, here in the benchmark, with the same lag on the Joule heating u |u| / 5 A instead of
-the current ("power lag": tau searched on the GPI's RMS error, then fit_gpi's own operator count).
+count) and with the thermal_lag effect (its operator count chosen again) in both its readings: the GPI
+sees the current through tau v' = u - v, or the Joule heating u |u| / u_ref through the same lag (the
+reading `diagnose` keeps when it fits better, reported as joule_reference_a = u_ref).
 Tracking: a fresh simulator
 follows the validation signal scaled to STROKE_FRACTION of the stroke measured during the identification
 (after SETTLE_S at the bottom of the range and SETTLE_S at the signal's first value, as the demo does),
@@ -23,10 +23,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from sma_stage.control import Compensator
-from sma_stage.identify.effects import fit_effect, lagged_input, recount_effect
+from sma_stage.identify.effects import InputTransformEffect, fit_effect, lagged_input, recount_effect
 from sma_stage.identify.fit import fit_gpi
 from sma_stage.model import GPIInverseStream, GPIParameters
 from sma_stage.plant import StageSimulator, simulate
@@ -43,20 +42,20 @@ IDENTIFICATION_SEED = 0
 TRACKING_SEED = 1
 TARGETS_PCT = {False: 3.0, True: 0.5}  # RMS % of the stroke: feedforward, PI loop
 PI_GAINS = (2.0, 4.0)  # kp [m/m], ki [1/s]: from the scan (--scan), the same for every model
-POWER_LAG_TAU_RANGE_S = (1.0, 100.0)
 SCAN_KP = (0.0, 0.5, 1.0, 2.0, 4.0)
 SCAN_KI = (0.3, 1.0, 2.0, 4.0, 8.0)
 
 
 @dataclass(frozen=True)
 class Model:
-    """A fitted model the compensator inverts: the GPI, its lag [s] (0: none), lag on the Joule heating."""
+    """A fitted model the compensator inverts: the GPI, its lag [s] (0: none) and the lag's heating
+    reference [A] (0: the lag acts on the current)."""
 
     name: str
     parameters: GPIParameters
     operators: int
     tau_s: float
-    power_lag: bool
+    heating_reference_a: float
     identification_rms_pct: float
 
 
@@ -85,23 +84,6 @@ class Mode:
         return f"{self.model.name}, {loop}"
 
 
-def heating(u: np.ndarray) -> np.ndarray:
-    """The Joule heating the relay routes to one wire, signed, in units of current: u |u| / 5 A."""
-    return u * np.abs(u) / MAX_CURRENT_A
-
-
-def fit_power_lag(t: np.ndarray, u: np.ndarray, y: np.ndarray, operators: int) -> Model:
-    """The GPI driven by v with tau v' = heating(u) - v: tau [s] minimising the fit's RMS error (at
-    `operators`), then the fit at that tau with fit_gpi's own operator count."""
-    def rms_pct(log_tau: float) -> float:
-        return fit_gpi(lagged_input(t, heating(u), np.exp(log_tau)), y, operators=operators).identification.rms_pct
-
-    bounds = np.log(POWER_LAG_TAU_RANGE_S)
-    tau = float(np.exp(minimize_scalar(rms_pct, bounds=bounds, method="bounded", options={"xatol": 1e-2}).x))
-    fit = fit_gpi(lagged_input(t, heating(u), tau), y)
-    return Model("GPI + power-lag lead", fit.parameters, fit.operators, tau, True, fit.identification.rms_pct)
-
-
 def identify() -> Identified:
     """Run the identification signal through the simulator and fit the three models."""
     started = time.perf_counter()
@@ -112,13 +94,16 @@ def identify() -> Identified:
     kept = slice(RECORD_EVERY - 1, None, RECORD_EVERY)
     t, u, y = run.t_s[kept], run.current_a[kept], run.measured_position_m[kept]
     gpi = fit_gpi(u, y)
-    lag = recount_effect(fit_effect("thermal_lag", t, u, y, gpi), t, u, y)
-    models = (Model("GPI inverse", gpi.parameters, gpi.operators, 0.0, False, gpi.identification.rms_pct),
-              Model("GPI + lag lead", lag.gpi_parameters, lag.operators, lag.parameters["tau_s"], False,
-                    lag.identification.rms_pct),
-              fit_power_lag(t, u, y, gpi.operators))
+    on_current = InputTransformEffect("thermal_lag", "tau_s", lagged_input).fit(t, u, y, gpi)
+    models = [Model("GPI inverse", gpi.parameters, gpi.operators, 0.0, 0.0, gpi.identification.rms_pct)]
+    for name, lag in (("GPI + lag lead (lag on the current)", on_current),
+                      ("GPI + lag lead (thermal_lag as diagnosed)", fit_effect("thermal_lag", t, u, y, gpi))):
+        lag = recount_effect(lag, t, u, y)
+        reference = lag.parameters.get("joule_reference_a", 0.0)
+        models.append(Model(name + (f", heating reference {reference:g} A" if reference else ""), lag.gpi_parameters,
+                            lag.operators, lag.parameters["tau_s"], reference, lag.identification.rms_pct))
     stroke = (float(run.measured_position_m.min()), float(run.measured_position_m.max()))
-    return Identified(models, stroke, time.perf_counter() - started)
+    return Identified(tuple(models), stroke, time.perf_counter() - started)
 
 
 def setpoints(stroke_m: tuple[float, float], t_s: np.ndarray) -> np.ndarray:
@@ -134,7 +119,8 @@ def compensator_for(mode: Mode) -> Compensator:
     model = mode.model
     inverse = GPIInverseStream(model.parameters, model.operators, "exact",
                                input_range=(-MAX_CURRENT_A, MAX_CURRENT_A))
-    return Compensator(inverse, lag_tau_s=model.tau_s, kp=mode.kp, ki=mode.ki, power_lag=model.power_lag)
+    return Compensator(inverse, lag_tau_s=model.tau_s, kp=mode.kp, ki=mode.ki,
+                       heating_reference_a=model.heating_reference_a)
 
 
 def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[float, float]:

@@ -24,21 +24,21 @@ def slow_setpoints(steps: int, dt_s: float) -> np.ndarray:
     return 5e-5 + 1.5e-4 * np.sin(2.0 * np.pi * t / 200.0) + 5e-5 * np.sin(2.0 * np.pi * t / 70.0)
 
 
-def lag_input(current_a: float, power_lag: bool) -> float:
-    return current_a * abs(current_a) / LIMIT_A if power_lag else current_a
+def lag_input(current_a: float, heating_reference_a: float) -> float:
+    return current_a * abs(current_a) / heating_reference_a if heating_reference_a else current_a
 
 
-@pytest.mark.parametrize("power_lag", [False, True])
-def test_the_lead_undoes_a_first_order_lag_exactly(power_lag):
+@pytest.mark.parametrize("heating_reference_a", [0.0, LIMIT_A, 3.0])
+def test_the_lead_undoes_a_first_order_lag_exactly(heating_reference_a):
     tau_s, dt_s = 8.0, 0.2
     setpoints = slow_setpoints(3000, dt_s)
     wanted = inverse_stream().run(setpoints)[0]
-    core = Compensator(inverse_stream(), lag_tau_s=tau_s, power_lag=power_lag)
+    core = Compensator(inverse_stream(), lag_tau_s=tau_s, heating_reference_a=heating_reference_a)
     kept = math.exp(-dt_s / tau_s)
     lagged, unclipped = 0.0, 0
     for setpoint, target in zip(setpoints, wanted, strict=True):
         current = core.command(setpoint, None, dt_s)
-        drive = lag_input(current, power_lag)
+        drive = lag_input(current, heating_reference_a)
         lagged = drive + (lagged - drive) * kept  # the current held for dt_s through tau v' = u - v
         if core.saturated == 0:
             unclipped += 1
@@ -104,6 +104,7 @@ def test_pi_removes_a_constant_offset_of_the_plant():
     (lambda core: setattr(core, "lag_tau_s", -1.0), "lag_tau_s"),
     (lambda core: setattr(core, "ki", float("nan")), "ki"),
     (lambda core: Compensator(inverse_stream(), lag_tau_s=-2.0), "lag_tau_s"),
+    (lambda core: Compensator(inverse_stream(), heating_reference_a=-5.0), "heating_reference_a"),
     (lambda core: Compensator("not an inverse"), "inverse"),
 ])
 def test_bad_input_is_refused_with_one_line(call, name):

@@ -14,8 +14,9 @@ current u). It keeps the lag's state v, advanced exactly over each step with the
 as long as the last positive dt_s: u = (v* - a v) / (1 - a), a = exp(-dt / tau). Unclipped and with v
 on v*'s previous value this is v* + a / (1 - a) (v* - v*_previous) ~ v* + tau dv*/dt; when the clip
 stops the current short, v lags v* and the lead keeps pushing on the following steps. The state starts
-at 0 A (an idle stage, as the identification assumes). With power_lag the lag filters u |u| / limit
-instead of u (the wires' heating is i^2 R) and the lead works in those units.
+at 0 A (an idle stage, as the identification assumes). With heating_reference_a > 0 the lag filters the
+Joule heating u |u| / heating_reference_a instead of u (the wires heat as i^2 R) and the lead works in
+those units.
 """
 
 from __future__ import annotations
@@ -43,12 +44,13 @@ def _non_negative(name: str, value: float) -> float:
     return number
 
 
-GAIN_PARAMETERS = ("lag_tau_s", "kp", "ki")
+GAIN_PARAMETERS = ("lag_tau_s", "heating_reference_a", "kp", "ki")
 
 
-def checked_gains(lag_tau_s: float, kp: float, ki: float) -> dict[str, float]:
-    """The gains (lag [s], kp [m/m], ki [1/s]) as floats; InputError unless each is finite and >= 0."""
-    values = {"lag_tau_s": lag_tau_s, "kp": kp, "ki": ki}
+def checked_gains(lag_tau_s: float, heating_reference_a: float, kp: float, ki: float) -> dict[str, float]:
+    """The lead's and the loop's settings (lag [s], heating reference [A], kp [m/m], ki [1/s]) as floats;
+    InputError unless each is finite and >= 0."""
+    values = {"lag_tau_s": lag_tau_s, "heating_reference_a": heating_reference_a, "kp": kp, "ki": ki}
     return {name: _non_negative(name, value) for name, value in values.items()}
 
 
@@ -57,14 +59,15 @@ class Compensator:
 
     inverse: the streaming GPI inverse (its input_range is the current limit [A]); lag_tau_s: the thermal
     lag's time constant [s] (0: no lead); kp [m/m] and ki [1/s]: the PI gains (used only when a
-    measurement is given); power_lag: the lag filters the Joule heating u |u| / limit [A] (signed by the
-    relay, limit = the larger end of the input range) instead of the current u, and the model's input
-    v is in those units: the lead then sends the current whose heating it wants.
+    measurement is given); heating_reference_a [A]: 0, the lag filters the current u; above 0, it
+    filters the Joule heating u |u| / heating_reference_a [A] (signed by the relay; the thermal_lag
+    effect's joule_reference_a), the model's input v is in those units, and the lead sends the current
+    whose heating it wants.
     """
 
     def __init__(self, inverse: GPIInverseStream, lag_tau_s: float = 0.0, kp: float = 0.0,
-                 ki: float = 0.0, power_lag: bool = False) -> None:
-        self.power_lag = bool(power_lag)
+                 ki: float = 0.0, heating_reference_a: float = 0.0) -> None:
+        self.heating_reference_a = heating_reference_a
         self.lag_tau_s = lag_tau_s
         self.kp = kp
         self.ki = ki
@@ -79,6 +82,15 @@ class Compensator:
     @lag_tau_s.setter
     def lag_tau_s(self, value: float) -> None:
         self._lag_tau_s = _non_negative("lag_tau_s", value)
+
+    @property
+    def heating_reference_a(self) -> float:
+        """Reference current [A] of the lagged Joule heating u |u| / reference; 0: the current is lagged."""
+        return self._heating_reference_a
+
+    @heating_reference_a.setter
+    def heating_reference_a(self, value: float) -> None:
+        self._heating_reference_a = _non_negative("heating_reference_a", value)
 
     @property
     def kp(self) -> float:
@@ -149,19 +161,15 @@ class Compensator:
         self.saturated = self._inverse.last_clipped or (wanted > clipped) - (wanted < clipped)
         return self._current_for(clipped)
 
-    def _limit_a(self) -> float:
-        """The current limit [A]: the larger end of the inverse's input range."""
-        return max(abs(limit) for limit in self._inverse.input_range)
-
     def _heating(self, current_a: float) -> float:
-        """What the lag filters [A]: the current, or with power_lag u |u| / limit."""
-        return current_a * abs(current_a) / self._limit_a() if self.power_lag else current_a
+        """What the lag filters [A]: the current, or u |u| / heating_reference_a."""
+        reference = self._heating_reference_a
+        return current_a * abs(current_a) / reference if reference > 0.0 else current_a
 
     def _current_for(self, heating: float) -> float:
         """The current [A] whose heating (see _heating) is `heating` [A]."""
-        if not self.power_lag:
-            return heating
-        return math.copysign(math.sqrt(abs(heating) * self._limit_a()), heating)
+        reference = self._heating_reference_a
+        return math.copysign(math.sqrt(abs(heating) * reference), heating) if reference > 0.0 else heating
 
     def _lagged(self, state_a: float, drive_a: float, dt: float) -> float:
         """The lag's state [A] after its input drive_a [A] (see _heating) held for dt [s] from state_a."""

@@ -393,9 +393,10 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         current = error_metrics(y_v, chain.predict(t_v, u_v))
         tests = residual_tests(y_v - chain.predict(t_v, u_v), u_v, t_v)
     predicted_after = chain.predict(t_v, u_v) if chain.effects else predicted_before
+    found_order = [found.winner.effect for found in rounds if found.winner is not None]
     return Diagnosis(
-        effect=chain.effects[0] if chain.effects else "none",
-        effects=chain.effects,
+        effect=found_order[0] if found_order else "none",
+        effects=found_order,
         evidence=tests_before.evidence(),
         parameters=chain.parameters,
         before=before,

@@ -15,6 +15,7 @@ state and the delay line at zero) and the operator states at zero, as in the mod
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -517,8 +518,64 @@ def _rate_projection(values: np.ndarray, gain: float, u: np.ndarray, rate: np.nd
     return a10, float(residual @ residual), residual / max(float(np.ptp(y)), np.finfo(float).tiny)
 
 
+def joule_heating(u: np.ndarray, reference_a: float) -> np.ndarray:
+    """The Joule heating in current units [A], u |u| / reference_a: signed by the relay (which wire it
+    heats), equal to u at +-reference_a."""
+    return u * np.abs(u) / reference_a
+
+
+class ThermalLagEffect(Effect):
+    """The GPI driven by a first-order lag (tau [s]) of either the current or of the Joule heating
+    u |u| / u_ref (u_ref [A]: the record's largest |u|), whichever fits the identification data better
+    (the wires heat as i^2 R, so the second is the physical reading; the first is exact for a plant whose
+    drive is filtered linearly). The heating reading reports joule_reference_a = u_ref."""
+
+    name = "thermal_lag"
+    PARAMETER = "joule_reference_a"
+
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+            progress: Progress = None) -> EffectFit:
+        reference = float(np.max(np.abs(u)))
+        readings = [self._reading(None)]
+        if reference > 0.0:
+            readings.append(self._reading(reference))
+        fits = []
+        for reading in readings:
+            try:
+                fits.append(reading.fit(t, u, y, base, progress))
+            except InputError:
+                continue
+        if not fits:
+            raise InputError("thermal_lag: the GPI cannot be fitted on the lagged current nor on the lagged heating")
+        return min(fits, key=lambda fit: fit.cost)
+
+    def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                progress: Progress = None) -> EffectFit:
+        return self._reading(fit.parameters.get(self.PARAMETER)).recount(fit, t, u, y, progress)
+
+    def _reading(self, reference_a: float | None) -> InputTransformEffect:
+        if reference_a is None:
+            return InputTransformEffect(self.name, "tau_s", lagged_input)
+        return _HeatingLag(self.name, "tau_s", lambda t, u, tau: lagged_input(t, joule_heating(u, reference_a), tau),
+                           {self.PARAMETER: reference_a})
+
+
+class _HeatingLag(InputTransformEffect):
+    """The lag of the Joule heating: an InputTransformEffect that also reports the heating's reference."""
+
+    def __init__(self, name: str, parameter: str, transform: Callable[[np.ndarray, np.ndarray, float], np.ndarray],
+                 fixed: dict[str, float]) -> None:
+        super().__init__(name, parameter, transform)
+        self.fixed = fixed
+
+    def _finish(self, value: float, gpi: FitResult | None, y: np.ndarray, parameter_count: int, started: float,
+                progress: Progress) -> EffectFit:
+        fit = super()._finish(value, gpi, y, parameter_count, started, progress)
+        return dataclasses.replace(fit, parameters={**fit.parameters, **self.fixed})
+
+
 EFFECTS: dict[str, Effect] = {
-    "thermal_lag": InputTransformEffect("thermal_lag", "tau_s", lagged_input),
+    "thermal_lag": ThermalLagEffect(),
     "delay": InputTransformEffect("delay", "delay_s", delayed_input),
     "rate": RateEffect(),
     "drift": DriftEffect(),

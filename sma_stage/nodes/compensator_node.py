@@ -67,6 +67,8 @@ COMPENSATOR_PARAMS = [
     Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (feedback mode)", 0.0, 10000.0),
     Param("lag_tau_s", 0.0, "thermal lag time constant [s of node-clock time] the lead undoes; 0: no lead",
           0.0, 1000.0),
+    Param("heating_reference_a", 0.0, "0: the lag acts on the current; > 0: on the Joule heating u|u|/this [A] "
+          "(thermal_lag's joule_reference_a)", 0.0, 100.0),
     Param("rate_hz", 50.0, "command republication and PI loop rate [Hz]", 0.1, 2000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
