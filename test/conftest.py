@@ -1,10 +1,24 @@
-"""Shared test set-up: isolate ROS 2 traffic per pytest process before anything imports rclpy."""
+"""Shared test set-up: isolate ROS 2 traffic per pytest process before anything imports rclpy.
+
+Under pytest-xdist (`./run.sh test` runs two workers) each worker takes its own share of the domain ids,
+so two workers never pick the same one: the process's ROS_DOMAIN_ID from 1..100, and the ids
+`test_nodes.unique_domain` hands out from 120..219.
+"""
 
 import os
 
 
+def worker_share(first: int, size: int) -> tuple[int, int]:
+    """(start, length) of this worker's share of the domain ids first .. first + size - 1."""
+    count = max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), 1)
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0) % count
+    length = size // count
+    return first + worker * length, length
+
+
 def _isolate_ros() -> None:
-    os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 101)
+    start, length = worker_share(1, 100)
+    os.environ["ROS_DOMAIN_ID"] = str(start + os.getpid() % length)
     os.environ["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     # Deprecated in Jazzy; when set it overrides the discovery range and logs a warning in every node.

@@ -17,6 +17,7 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy")
 
+from conftest import worker_share  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rcl_interfaces.srv import SetParametersAtomically  # noqa: E402
 from rclpy.context import Context  # noqa: E402
@@ -42,7 +43,8 @@ _domains = itertools.count()
 
 def unique_domain() -> int:
     """A DDS domain id no other test of this run uses (and unlikely to clash with another run)."""
-    return 120 + (os.getpid() * 7 + next(_domains)) % 100
+    start, length = worker_share(120, 100)
+    return start + (os.getpid() * 7 + next(_domains)) % length
 
 
 class Ros:

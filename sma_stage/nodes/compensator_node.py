@@ -111,7 +111,7 @@ class CompensatorNode(Node):
         self.setpoint_m: float | None = None
         self.measured_m: float | None = None
         self.clipped_count = 0
-        self._last_step = None
+        self._last_step_ns: int | None = None
         self._last_warning: dict[str, object] = {}
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
@@ -225,11 +225,11 @@ class CompensatorNode(Node):
     def elapsed_s(self) -> float:
         """Node-clock seconds since the previous command computed, 0 for the first (simulated time with
         use_sim_time)."""
-        now = self.get_clock().now()
-        previous, self._last_step = self._last_step, now
-        if previous is None:
+        now_ns = self.get_clock().now().nanoseconds
+        previous_ns, self._last_step_ns = self._last_step_ns, now_ns
+        if previous_ns is None:
             return 0.0
-        return max((now - previous).nanoseconds * 1e-9, 0.0)
+        return max((now_ns - previous_ns) * 1e-9, 0.0)
 
     def compute_command(self, dt_s: float) -> float:
         """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral, lead's rate)."""
