@@ -23,22 +23,12 @@ from __future__ import annotations
 
 import math
 
-from sma_stage.errors import InputError
+from sma_stage.errors import InputError, finite_number
 from sma_stage.model import GPIInverseStream
 
 
-def _finite(name: str, value: float) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(number):
-        raise InputError(f"{name} must be finite, got {value!r}")
-    return number
-
-
 def _non_negative(name: str, value: float) -> float:
-    number = _finite(name, value)
+    number = finite_number(name, value)
     if number < 0.0:
         raise InputError(f"{name} must be at least 0, got {value!r}")
     return number
@@ -133,11 +123,11 @@ class Compensator:
     def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0) -> float:
         """The current [A] for setpoint_m [m]; with measured_m [m] the PI loop acts, integrating the error
         over dt_s [s], the time since the previous call (0 for a call at the same instant)."""
-        setpoint = _finite("setpoint_m", setpoint_m)
+        setpoint = finite_number("setpoint_m", setpoint_m)
         dt = _non_negative("dt_s", dt_s)
         self.target_m = setpoint
         if measured_m is not None:
-            self.target_m = self._pi_target(setpoint, _finite("measured_m", measured_m), dt)
+            self.target_m = self._pi_target(setpoint, finite_number("measured_m", measured_m), dt)
         lag_input = self._inverse.step(self.target_m)
         self.command_a = self._lead(lag_input, dt)
         return self.command_a

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sma_stage.errors import InputError
+from sma_stage.errors import InputError, finite_number
 from sma_stage.plant import physics as ph
 from sma_stage.plant.config import Effects, StageConfig, pack_parameters
 
@@ -51,13 +51,7 @@ def _check_dt(dt_s: float) -> float:
 
 
 def _check_current(current_a) -> float:
-    try:
-        current = float(current_a)
-    except (TypeError, ValueError):
-        raise InputError(f"current_a must be a number, got {current_a!r}") from None
-    if not math.isfinite(current):
-        raise InputError(f"current_a must be finite, got {current_a!r}")
-    return current
+    return finite_number("current_a", current_a)
 
 
 def _check_currents(current_a) -> np.ndarray:
