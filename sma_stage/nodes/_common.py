@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -95,6 +96,24 @@ def _reason(error: ParameterException) -> str:
 def finite(value: float) -> bool:
     """True for a finite float (not NaN, not +-inf)."""
     return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+class ThrottledWarnings:
+    """A node's warnings, each kind (key) logged at most once every period_s of steady time."""
+
+    def __init__(self, node: Node, period_s: float = 1.0) -> None:
+        self._node = node
+        self._period_ns = int(period_s * 1e9)
+        self._clock = Clock(clock_type=ClockType.STEADY_TIME)
+        self._last_ns: dict[str, int] = {}
+
+    def warn(self, key: str, text: str) -> None:
+        """Log text unless a warning of this key was logged less than period_s ago."""
+        now_ns = self._clock.now().nanoseconds
+        last_ns = self._last_ns.get(key)
+        if last_ns is None or now_ns - last_ns >= self._period_ns:
+            self._last_ns[key] = now_ns
+            self._node.get_logger().warning(text)
 
 
 class _YieldToExecutor:

@@ -40,6 +40,7 @@ from sma_stage.nodes._common import (
     JOINT_NAME,
     STATE_SUBSCRIBE_QOS,
     Param,
+    ThrottledWarnings,
     declare_all,
     exit_with,
     finite,
@@ -52,7 +53,6 @@ DEFAULT_MODEL = {"a1": 0.0005, "a2": 0.6, "a3": 0.1, "a4": 0.0, "a5": 0.0005, "a
 DEFAULT_OPERATORS = 10
 MODEL_PARAMETERS = (*PARAMETER_NAMES, "operators")
 REBUILD_PARAMETERS = (*MODEL_PARAMETERS, "inverse_method", "max_current")
-WARN_THROTTLE_S = 1.0
 MODEL_LIMIT = 1e12
 
 COMPENSATOR_PARAMS = [
@@ -112,7 +112,7 @@ class CompensatorNode(Node):
         self.measured_m: float | None = None
         self.clipped_count = 0
         self._last_step_ns: int | None = None
-        self._last_warning: dict[str, object] = {}
+        self.warnings = ThrottledWarnings(self)
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
         self.create_subscription(Float64, "setpoint", self.on_setpoint, COMMAND_QOS)
@@ -147,13 +147,6 @@ class CompensatorNode(Node):
         source = self.values["model_file"] or "parameters a1..a11"
         return (f"{self.inverse.method} inverse of a {self.inverse.operators}-operator GPI model from {source}, "
                 f"feedback {'on' if self.values['feedback'] else 'off'}")
-
-    def _warn(self, key: str, text: str) -> None:
-        now = self.steady.now()
-        last = self._last_warning.get(key)
-        if last is None or (now - last).nanoseconds * 1e-9 >= WARN_THROTTLE_S:
-            self._last_warning[key] = now
-            self.get_logger().warning(text)
 
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         """Validate a parameter change as a whole; swap in the new inverse when the model changed."""
@@ -198,7 +191,7 @@ class CompensatorNode(Node):
         """A new position setpoint [m]: answer at once with a command."""
         value = float(message.data)
         if not finite(value):
-            self._warn("setpoint", f"refused a non-finite setpoint ({value})")
+            self.warnings.warn("setpoint", f"refused a non-finite setpoint ({value})")
             return
         with self._lock:
             self.setpoint_m = value
@@ -237,7 +230,7 @@ class CompensatorNode(Node):
         current = self.core.command(self.setpoint_m, measured, dt_s)
         if self.inverse.last_clipped:
             self.clipped_count += 1
-            self._warn("clipped", f"target {self.core.target_m:.4g} m is beyond the model's reach within "
+            self.warnings.warn("clipped", f"target {self.core.target_m:.4g} m is beyond the model's reach within "
                                   f"+-{self.values['max_current']:g} A: current at its limit")
         return current
 

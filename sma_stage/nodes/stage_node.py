@@ -33,6 +33,7 @@ from sma_stage.nodes._common import (
     JOINT_NAME,
     STATE_PUBLISH_QOS,
     Param,
+    ThrottledWarnings,
     declare_all,
     exit_with,
     finite,
@@ -42,7 +43,6 @@ from sma_stage.plant import Effects, StageConfig, StageSimulator
 
 BACKENDS = ("sim",)
 DIAGNOSTICS_PERIOD_S = 1.0
-WARN_THROTTLE_S = 1.0
 
 _EFFECT_UNITS = {"ambient_drift_k_per_s": "K/s", "sensor_delay_s": "s", "creep_amplitude_m": "m",
                  "creep_time_constant_s": "s", "creep_reference_m": "m", "load_change_n": "N",
@@ -104,7 +104,7 @@ class StageNode(Node):
         self.watchdog_tripped = False
         self.clamped_count = 0
         self.rejected_count = 0
-        self._last_warning: dict[str, Time] = {}
+        self.warnings = ThrottledWarnings(self)
         self.state = self.simulator.state
         self._last_tick: Time | None = None
 
@@ -130,19 +130,12 @@ class StageNode(Node):
         """The watchdog timeout [s] in force."""
         return float(self.get_parameter("command_timeout").value)
 
-    def _warn(self, key: str, text: str) -> None:
-        now = self.steady.now()
-        last = self._last_warning.get(key)
-        if last is None or (now - last).nanoseconds * 1e-9 >= WARN_THROTTLE_S:
-            self._last_warning[key] = now
-            self.get_logger().warning(text)
-
     def on_command(self, message: Float64) -> None:
         """Store a command [A]: NaN/inf refused, out-of-range values clamped."""
         value = float(message.data)
         if not finite(value):
             self.rejected_count += 1
-            self._warn("rejected", f"refused a non-finite current command ({value}); keeping {self.command_a:g} A")
+            self.warnings.warn("rejected", f"refused a non-finite current command ({value}); keeping {self.command_a:g} A")
             return
         if self.stopped:
             return
@@ -150,7 +143,7 @@ class StageNode(Node):
         clamped = min(max(value, -limit), limit)
         if clamped != value:
             self.clamped_count += 1
-            self._warn("clamped", f"current command {value:g} A clamped to {clamped:g} A (max_current)")
+            self.warnings.warn("clamped", f"current command {value:g} A clamped to {clamped:g} A (max_current)")
         self.command_a = clamped
         self.last_command = self.steady.now()
 
