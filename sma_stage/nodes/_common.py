@@ -3,6 +3,7 @@ that turns a bad start-up parameter into a one-line error and shuts down quietly
 
 from __future__ import annotations
 
+import gc
 import math
 import sys
 import threading
@@ -203,6 +204,8 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
         executor = _make_executor(executor_kind)
         node = make_node()
         executor.add_node(node)
+        gc.collect()
+        gc.freeze()  # what start-up built lives on: the collector's passes stop walking it
         _spin(executor)
     except (InputError, ParameterException) as error:
         print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
