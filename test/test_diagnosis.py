@@ -18,6 +18,8 @@ from sma_stage.identify.effects import (
     rate_forward,
     rate_model_output,
 )
+from sma_stage.identify.fit import predict
+from sma_stage.identify.metrics import error_metrics
 from sma_stage.identify.residual_tests import TEST_NAMES, residual_tests
 from sma_stage.model import forward
 
@@ -254,3 +256,15 @@ def test_residual_tests_serialise_to_json():
     assert set(document) == set(TEST_NAMES)
     assert all(isinstance(entry["passed"], bool) for entry in document.values())
     assert document["lagged_input"]["threshold"] > document["input"]["threshold"]
+
+
+def test_scored_from_counts_the_validation_errors_from_that_sample():
+    case, _ = diagnosed("none")
+    ident, valid = case.identification, case.validation
+    result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), scored_from=600, max_rounds=1)
+    predicted = predict(result.base, valid.u)
+    assert result.before == error_metrics(valid.y[600:], predicted[600:])
+    assert np.array_equal(result.validation_predicted_before, predicted), "the model ran over the whole record"
+    with pytest.raises(InputError) as excinfo:
+        diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), scored_from=valid.t.size - 2)
+    assert "scored_from" in str(excinfo.value)

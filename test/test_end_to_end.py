@@ -16,6 +16,7 @@ pytest.importorskip("rclpy")
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 
+from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.model import PARAMETER_NAMES, GPIInverseStream, GPIParameters, load_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, find_executable, wait_for  # noqa: E402
@@ -75,16 +76,22 @@ def test_executables_excite_refit_push_and_track(tmp_path):
             report = refit_after_excitation(client, nodes.check_running)
             assert report["compensator"]["pushed"], report["compensator"]["message"]
             assert report["samples"]["identification"] + report["samples"]["validation"] >= 60, "min_samples"
-            fitted = GPIParameters.from_dict(report["model"]["parameters"])
-            held = client.get_parameters("compensator", [*PARAMETER_NAMES, "operators"])
-            assert held == {**report["model"]["parameters"], "operators": 5}, "the compensator holds the fit"
+            kept = report.get("lag_model") or {**report["model"], "lag_tau_s": 0.0, "heating_reference_a": 0.0}
+            assert report["diagnosis"]["effect"] in ("none", "thermal_lag", "delay", "rate", "drift")
+            fitted = GPIParameters.from_dict(kept["parameters"])
+            names = [*PARAMETER_NAMES, "operators", "lag_tau_s", "heating_reference_a"]
+            held = client.get_parameters("compensator", names)
+            assert held == {**kept["parameters"], "operators": kept["operators"], "lag_tau_s": kept["lag_tau_s"],
+                            "heating_reference_a": kept["heating_reference_a"]}, "the compensator holds the fit"
             assert load_model_file(model_file).parameters == fitted
 
             stroke = (min(seen.positions), max(seen.positions))
             assert stroke[1] - stroke[0] > 2e-4, f"the excitation moved the stage: {stroke}"
             start = float(np.mean(seen.positions[-10:]))
             target = start + (0.3 if start < np.mean(stroke) else -0.3) * (stroke[1] - stroke[0])
-            expected = GPIInverseStream(fitted, 5, "exact", input_range=(-5.0, 5.0)).step(target)
+            client.set_parameters("compensator", {"lag_tau_s": 0.0})  # the inverse alone, no lead
+            inverse = GPIInverseStream(fitted, kept["operators"], "exact", input_range=(-5.0, 5.0))
+            expected = Compensator(inverse, heating_reference_a=kept["heating_reference_a"]).command(target)
             setpoint = client.node.create_publisher(Float64, "setpoint", COMMAND_QOS)
             wait_for(lambda: client.node.count_subscribers("setpoint") >= 1, 10.0, "the compensator")
             commands_before = len(seen.commands)

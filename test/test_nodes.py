@@ -453,7 +453,8 @@ TIME_SCALE = 250.0  # simulated seconds per wall second: the paper's 250 s perio
 
 
 def identification_node(ros: Ros, **overrides) -> IdentificationNode:
-    params = [Parameter(name, value=value) for name, value in overrides.items()]
+    """The node without the residual diagnosis unless a test asks for it (it takes most of a refit's time)."""
+    params = [Parameter(name, value=value) for name, value in {"diagnose_rounds": 0, **overrides}.items()]
     return ros.add(IdentificationNode(context=ros.context, parameter_overrides=params))
 
 

@@ -257,14 +257,33 @@ def judge(delta_bic: float, validation: ErrorMetrics, before: ErrorMetrics,
     return True, f"BIC change {delta_bic:+.1f}, validation RMS {before.rms_pct:.3g} % -> {validation.rms_pct:.3g} %"
 
 
-def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Record, before: ErrorMetrics, started: float,
+@dataclass(frozen=True)
+class Validation:
+    """The validation record (t [s], u [A], y) and the sample its errors count from: every model runs
+    over all of it from an idle stage; the samples before scored_from only bring its states up."""
+
+    t: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    scored_from: int = 0
+
+    def errors(self, predicted: np.ndarray) -> ErrorMetrics:
+        """RMS and max error of a prediction over the scored samples [% of their span]."""
+        return error_metrics(self.y[self.scored_from:], predicted[self.scored_from:])
+
+    def tests(self, predicted: np.ndarray) -> ResidualTests:
+        """The residual tests of a prediction over the scored samples."""
+        k = self.scored_from
+        return residual_tests((self.y - predicted)[k:], self.u[k:], self.t[k:])
+
+
+def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Validation, before: ErrorMetrics, started: float,
                margin: float, progress: Progress) -> CandidateResult:
     """Judge the chain with fit on top; in a later round its effects are first fitted again together."""
     extended = chain.then(fit)
     if len(chain.stages) > 1:
         extended = refine(extended, ident, progress=progress)
-    t_v, u_v, y_v = valid
-    validation = error_metrics(y_v, extended.predict(t_v, u_v))
+    validation = valid.errors(extended.predict(valid.t, valid.u))
     delta_bic = extended.bic - chain.bic
     accepted, reason = judge(delta_bic, validation, before, margin)
     parameters = fit.parameters if len(chain.stages) == 1 else extended.parameters
@@ -272,7 +291,7 @@ def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Record, befor
                            reason, time.perf_counter() - started, fit, extended)
 
 
-def _search_round(chain: Chain, ident: Record, valid: Record, before: ErrorMetrics, tests: ResidualTests,
+def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics, tests: ResidualTests,
                   recount: bool, progress: Progress) -> Round:
     """Fit every effect not yet in the chain on top of it and pick the winner (see the selection rule)."""
     first = len(chain.stages) == 1
@@ -352,7 +371,8 @@ def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chai
 
 
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,
-             progress: Progress = None, output_unit: str = "m", max_rounds: int = len(EFFECT_NAMES)) -> Diagnosis:
+             progress: Progress = None, output_unit: str = "m", max_rounds: int = len(EFFECT_NAMES),
+             scored_from: int = 0) -> Diagnosis:
     """Fit (unless base is given) on ident, test the validation residual, fit and judge every candidate
     effect, add the one that earns its parameters, and search again on top of it, up to max_rounds
     rounds; "none" when the first round adds nothing.
@@ -365,33 +385,36 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     started = time.perf_counter()
     ident_record = as_record(ident, "identification")
     valid_record = as_record(valid, "validation")
+    if not 0 <= scored_from <= valid_record[0].size - 3:
+        raise InputError(f"scored_from must leave at least 3 validation samples, got {scored_from}")
+    validation = Validation(*valid_record, scored_from)
     t_i, u_i, y_i = ident_record
-    t_v, u_v, y_v = valid_record
+    t_v, u_v, _ = valid_record
     if base is None:
         _report(progress, "fitting the plain GPI on the identification data")
         base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
     chain = Chain((no_effect(t_i, u_i, y_i, base),), base)
     predicted_before = predict(base, u_v)
-    before = error_metrics(y_v, predicted_before)
-    tests_before = residual_tests(y_v - predicted_before, u_v, t_v)
+    before = validation.errors(predicted_before)
+    tests_before = validation.tests(predicted_before)
     failed = [name for name, check in tests_before.checks.items() if not check.passed]
     _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
     rounds, current, tests = [], before, tests_before
     while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
-        found = _search_round(chain, ident_record, valid_record, current, tests, operators is None and not rounds,
+        found = _search_round(chain, ident_record, validation, current, tests, operators is None and not rounds,
                               progress)
         rounds.append(found)
         if found.winner is None:
             break
         chain = found.winner.model
         current = found.winner.validation
-        tests = residual_tests(y_v - chain.predict(t_v, u_v), u_v, t_v)
+        tests = validation.tests(chain.predict(t_v, u_v))
         _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
-        current = error_metrics(y_v, chain.predict(t_v, u_v))
-        tests = residual_tests(y_v - chain.predict(t_v, u_v), u_v, t_v)
+        current = validation.errors(chain.predict(t_v, u_v))
+        tests = validation.tests(chain.predict(t_v, u_v))
     predicted_after = chain.predict(t_v, u_v) if chain.effects else predicted_before
     found_order = [found.winner.effect for found in rounds if found.winner is not None]
     return Diagnosis(

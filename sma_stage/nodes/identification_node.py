@@ -10,7 +10,9 @@ Services (std_srvs/Trigger):
 - `~/refit`: refused at once (success=false, one-line reason) while an excitation runs, while another refit
   runs, or when the recording cannot support a fit. Otherwise fits the first (1 - holdout_fraction) of the
   recording, validates on the held-out tail (the model runs over the whole recording, the errors are taken
-  on the tail only), writes `model_file` atomically, pushes a1..a11 and operators to
+  on the tail only), then (diagnose_rounds > 0) diagnoses the residual the same way: when the first effect
+  named is thermal_lag, the GPI fitted with the lag is the model kept, with the lag for the compensator's
+  lead. Writes `model_file` atomically, pushes a1..a11, operators, lag_tau_s and heating_reference_a to
   `<compensator_name>/set_parameters_atomically`, and answers with the JSON report (also on `~/report`).
 - `~/clear`: empties the buffer.
 
@@ -37,6 +39,8 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from sma_stage.errors import InputError
+from sma_stage.identify.diagnosis import diagnose
+from sma_stage.identify.effects import EffectFit
 from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.identify.report import fit_report
@@ -66,6 +70,8 @@ IDENTIFICATION_PARAMS = [
     Param("min_samples", 100, "fewest aligned samples a refit accepts", 20, 10**8),
     Param("holdout_fraction", 0.25, "tail of the recording held out for validation", 0.05, 0.5),
     Param("operators", 10, "play operators of the fitted model (0: chosen by the fit)", 0, MAX_OPERATORS),
+    Param("diagnose_rounds", 1, "rounds of residual diagnosis after the fit (0: none); when the first effect "
+          "named is thermal_lag, the GPI with the lag and its lead go to the compensator", 0, 4),
     Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
           read_only=True),
@@ -104,8 +110,12 @@ def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, i
     return make_series(t, u, y, "recording", min_samples=min_samples)
 
 
-def fit_recording(series: Series, operators: int | None, holdout_fraction: float) -> dict:
-    """Fit the head of the recording, validate on its held-out tail; the JSON report (design schema)."""
+def fit_recording(series: Series, operators: int | None, holdout_fraction: float,
+                  diagnose_rounds: int = 0) -> dict:
+    """Fit the head of the recording, validate on its held-out tail; the JSON report (design schema).
+    With diagnose_rounds > 0 the report also carries the diagnosis (`diagnose` on the head, validated
+    on the tail with the models run over the whole recording) and, under "lag_model", the GPI with the
+    thermal lag when that is the first effect named."""
     ident, tail = series.split(1.0 - holdout_fraction)
     fit = fit_gpi(ident.input, ident.output, operators=operators)
     predicted = predict(fit, series.input)[len(ident):]
@@ -114,7 +124,23 @@ def fit_recording(series: Series, operators: int | None, holdout_fraction: float
               f"t = {tail.t[0]:.3f} to {tail.t[-1]:.3f} s), model run over the whole recording")
     report = fit_report(fit, validation, source)
     report["samples"] = {"identification": len(ident), "validation": len(tail)}
+    if diagnose_rounds > 0 and validation is not None:
+        found = diagnose(ident, series, base=fit, operators=operators, max_rounds=diagnose_rounds,
+                         scored_from=len(ident), output_unit=fit.parameters.output_unit)
+        report["diagnosis"] = found.to_dict()
+        first = found.rounds[0].winner if found.rounds else None
+        if first is not None and first.effect == "thermal_lag":
+            report["lag_model"] = lag_model(first.fit)
     return report
+
+
+def lag_model(fit: EffectFit) -> dict:
+    """The GPI fitted with the thermal lag, as the compensator takes it: a1..a11, operators, lag_tau_s
+    and heating_reference_a (0: the lag of the current)."""
+    return {"parameters": fit.gpi_parameters.to_dict(), "operators": fit.operators,
+            "output_unit": fit.gpi_parameters.output_unit,
+            "lag_tau_s": float(fit.parameters["tau_s"]),
+            "heating_reference_a": float(fit.parameters.get("joule_reference_a", 0.0))}
 
 
 class BagThread:
@@ -425,11 +451,13 @@ class IdentificationNode(Node):
         """Fit, validate, write the model file, push the parameters; the report (InputError when refused)."""
         series = self.snapshot()
         operators = int(self.values["operators"]) or None
-        report = fit_recording(series, operators, float(self.values["holdout_fraction"]))
-        model = report["model"]
+        report = fit_recording(series, operators, float(self.values["holdout_fraction"]),
+                               int(self.values["diagnose_rounds"]))
+        model = report.get("lag_model") or {**report["model"], "lag_tau_s": 0.0, "heating_reference_a": 0.0}
         report["warnings"] = []
         report["model_file"] = self.write_model(model, series)
-        report["compensator"] = self.push(model)
+        report["compensator"] = {**self.push(model), "lag_tau_s": model["lag_tau_s"],
+                                 "heating_reference_a": model["heating_reference_a"]}
         if not report["compensator"]["pushed"]:
             report["warnings"].append(report["compensator"]["message"])
         return report
@@ -439,8 +467,9 @@ class IdentificationNode(Node):
         path = str(self.values["model_file"])
         if not path:
             return None
-        params = GPIParameters.from_dict(model["parameters"], output_unit=model["output_unit"])
-        metadata = {"source": "identification node ~/refit", "samples": len(series)}
+        params = GPIParameters.from_dict(model["parameters"], output_unit=model.get("output_unit", "m"))
+        metadata = {"source": "identification node ~/refit", "samples": len(series),
+                    "lag_tau_s": model["lag_tau_s"], "heating_reference_a": model["heating_reference_a"]}
         try:
             params.to_yaml(path, int(model["operators"]), metadata=metadata)
         except OSError as error:
@@ -448,12 +477,14 @@ class IdentificationNode(Node):
         return path
 
     def push(self, model: dict) -> dict:
-        """Send a1..a11 and operators to the compensator in one atomic parameter set."""
+        """Send a1..a11, operators, lag_tau_s and heating_reference_a to the compensator in one atomic set."""
         name = self.push_client.srv_name
         if not self.push_client.wait_for_service(timeout_sec=float(self.values["push_timeout"])):
             return {"pushed": False, "message": f"compensator service {name} not available: parameters not pushed"}
         parameters = [Parameter(key, value=float(value)).to_parameter_msg() for key, value in model["parameters"].items()]
         parameters.append(Parameter("operators", value=int(model["operators"])).to_parameter_msg())
+        parameters += [Parameter(name, value=float(model[name])).to_parameter_msg()
+                       for name in ("lag_tau_s", "heating_reference_a")]
         future = self.push_client.call_async(SetParametersAtomically.Request(parameters=parameters))
         done = threading.Event()
         future.add_done_callback(lambda _: done.set())
