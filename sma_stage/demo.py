@@ -22,10 +22,10 @@ from sma_stage.commands.paper import evaluate_paper
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.model import PARAMETER_NAMES, forward, inverse, load_model_file
+from sma_stage.nodes.launch import CONFIG_DIR
 from sma_stage.plots import Panel, save_panels
 from sma_stage.signals import paper_validation_signal
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 DEFAULT_MODEL = CONFIG_DIR / "model_default.yaml"
 MAX_CURRENT_A = 5.0
 

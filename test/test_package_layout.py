@@ -108,3 +108,11 @@ def test_installed_gpi_tool_runs(colcon_install: Path) -> None:
     )
     assert result.returncode == 0, result.stderr
     assert "usage" in result.stdout.lower()
+
+
+def test_an_installed_package_finds_its_installed_config(colcon_install: Path) -> None:
+    from sma_stage.nodes.launch import find_config_dir
+
+    launchers = list(colcon_install.glob("lib/python*/site-packages/sma_stage/nodes/launch.py"))
+    assert len(launchers) == 1, launchers
+    assert find_config_dir(launchers[0]) == colcon_install / "share" / PACKAGE / "config"

@@ -26,7 +26,22 @@ import yaml
 
 from sma_stage.errors import InputError
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+
+def find_config_dir(package_file: Path = Path(__file__)) -> Path:
+    """The parameter files' folder: `config/` of the source tree (a checkout or an editable install), else
+    `share/sma_stage/config` of the install prefix the package sits in (colcon's `install/sma_stage`)."""
+    here = package_file.resolve()
+    source = here.parents[2] / "config"
+    if (source / "stage.yaml").is_file():
+        return source
+    for prefix in here.parents:
+        installed = prefix / "share" / "sma_stage" / "config"
+        if (installed / "stage.yaml").is_file():
+            return installed
+    raise InputError(f"no config/stage.yaml next to {here.parents[2]} nor under any share/sma_stage above it")
+
+
+CONFIG_DIR = find_config_dir()
 STOP_TIMEOUT_S = 10.0
 _PR_SET_PDEATHSIG = 1
 
