@@ -21,6 +21,7 @@ import numpy as np
 from sma_stage.commands.paper import evaluate_paper
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
+from sma_stage.identify.report import kept_model
 from sma_stage.model import PARAMETER_NAMES, forward, inverse, load_model_file
 from sma_stage.nodes.launch import CONFIG_DIR
 from sma_stage.plots import Panel, save_panels
@@ -259,11 +260,6 @@ def excite_and_refit(client: object, session: StageSession, settings: EndToEndSe
 
 
 LEAD_PARAMETERS = ("operators", "lag_tau_s", "heating_reference_a")
-
-
-def kept_model(report: dict) -> dict:
-    """The model ~/refit wrote and pushed: the GPI with the thermal lag when the diagnosis named it first."""
-    return report.get("lag_model") or {**report["model"], "lag_tau_s": 0.0, "heating_reference_a": 0.0}
 
 
 def describe_diagnosis(report: dict) -> str:

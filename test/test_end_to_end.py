@@ -17,6 +17,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
+from sma_stage.identify.report import kept_model  # noqa: E402
 from sma_stage.model import PARAMETER_NAMES, GPIInverseStream, GPIParameters, load_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, find_executable, wait_for  # noqa: E402
@@ -76,7 +77,7 @@ def test_executables_excite_refit_push_and_track(tmp_path):
             report = refit_after_excitation(client, nodes.check_running)
             assert report["compensator"]["pushed"], report["compensator"]["message"]
             assert report["samples"]["identification"] + report["samples"]["validation"] >= 60, "min_samples"
-            kept = report.get("lag_model") or {**report["model"], "lag_tau_s": 0.0, "heating_reference_a": 0.0}
+            kept = kept_model(report)
             assert report["diagnosis"]["effect"] in ("none", "thermal_lag", "delay", "rate", "drift")
             fitted = GPIParameters.from_dict(kept["parameters"])
             names = [*PARAMETER_NAMES, "operators", "lag_tau_s", "heating_reference_a"]

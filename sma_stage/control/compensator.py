@@ -44,6 +44,20 @@ def checked_gains(lag_tau_s: float, heating_reference_a: float, kp: float, ki: f
     return {name: _non_negative(name, value) for name, value in values.items()}
 
 
+class _NonNegative:
+    """A float setting of the Compensator, kept as `_<name>`; setting it to anything but a finite number
+    >= 0 raises InputError naming it."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name, self.slot = name, f"_{name}"
+
+    def __get__(self, instance: object, owner: type | None = None) -> float:
+        return self if instance is None else getattr(instance, self.slot)
+
+    def __set__(self, instance: object, value: float) -> None:
+        setattr(instance, self.slot, _non_negative(self.name, value))
+
+
 class Compensator:
     """Setpoint [m] (and measured position [m]) in, current [A] out; see the module's docstring.
 
@@ -55,6 +69,11 @@ class Compensator:
     whose heating it wants.
     """
 
+    lag_tau_s = _NonNegative()  # time constant of the thermal lag the lead inverts [s]; 0: no lead
+    heating_reference_a = _NonNegative()  # [A] of the lagged heating u |u| / reference; 0: the current is lagged
+    kp = _NonNegative()  # proportional gain [m of target per m of error]
+    ki = _NonNegative()  # integral gain [1/s]
+
     def __init__(self, inverse: GPIInverseStream, lag_tau_s: float = 0.0, kp: float = 0.0,
                  ki: float = 0.0, heating_reference_a: float = 0.0) -> None:
         self.heating_reference_a = heating_reference_a
@@ -63,42 +82,6 @@ class Compensator:
         self.ki = ki
         self.command_a = 0.0
         self.set_inverse(inverse)
-
-    @property
-    def lag_tau_s(self) -> float:
-        """Time constant of the thermal lag the lead inverts [s]; 0 turns the lead off."""
-        return self._lag_tau_s
-
-    @lag_tau_s.setter
-    def lag_tau_s(self, value: float) -> None:
-        self._lag_tau_s = _non_negative("lag_tau_s", value)
-
-    @property
-    def heating_reference_a(self) -> float:
-        """Reference current [A] of the lagged Joule heating u |u| / reference; 0: the current is lagged."""
-        return self._heating_reference_a
-
-    @heating_reference_a.setter
-    def heating_reference_a(self, value: float) -> None:
-        self._heating_reference_a = _non_negative("heating_reference_a", value)
-
-    @property
-    def kp(self) -> float:
-        """Proportional gain [m of target per m of error]."""
-        return self._kp
-
-    @kp.setter
-    def kp(self, value: float) -> None:
-        self._kp = _non_negative("kp", value)
-
-    @property
-    def ki(self) -> float:
-        """Integral gain [1/s]."""
-        return self._ki
-
-    @ki.setter
-    def ki(self, value: float) -> None:
-        self._ki = _non_negative("ki", value)
 
     @property
     def inverse(self) -> GPIInverseStream:

@@ -277,9 +277,11 @@ class Validation:
         return residual_tests((self.y - predicted)[k:], self.u[k:], self.t[k:])
 
 
-def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Validation, before: ErrorMetrics, started: float,
+def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Validation, before: ErrorMetrics, spent_s: float,
                margin: float, progress: Progress) -> CandidateResult:
-    """Judge the chain with fit on top; in a later round its effects are first fitted again together."""
+    """Judge the chain with fit on top; in a later round its effects are first fitted again together.
+    spent_s: the seconds its fits took so far (the judging time is added)."""
+    started = time.perf_counter()
     extended = chain.then(fit)
     if len(chain.stages) > 1:
         extended = refine(extended, ident, progress=progress)
@@ -288,7 +290,7 @@ def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Validation, b
     accepted, reason = judge(delta_bic, validation, before, margin)
     parameters = fit.parameters if len(chain.stages) == 1 else extended.parameters
     return CandidateResult(fit.effect, parameters, extended.last.identification, validation, delta_bic, accepted,
-                           reason, time.perf_counter() - started, fit, extended)
+                           reason, spent_s + time.perf_counter() - started, fit, extended)
 
 
 def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics, tests: ResidualTests,
@@ -304,14 +306,13 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
     candidates, failures = [], {}
     for name in (effect for effect in rank_candidates(tests) if effect not in chain.effects):
         _report(progress, f"fitting candidate {name}" + ("" if first else f" on top of {' + '.join(chain.effects)}"))
-        started = time.perf_counter()
         try:
             fit = fit_effect(name, t_i, v_i, w_i, base, progress)
         except InputError as error:
             failures[name] = str(error)
             _report(progress, f"{name}: not fitted: {error}")
             continue
-        candidates.append(_candidate(chain, fit, ident, valid, before, started, margin, progress))
+        candidates.append(_candidate(chain, fit, ident, valid, before, fit.seconds, margin, progress))
         _report(progress, f"{name}: {candidates[-1].reason}")
     if recount:
         leaders = sorted((c for c in candidates if c.accepted), key=lambda c: c.validation.rms_pct)[:RECOUNTED]
@@ -323,8 +324,7 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
                 continue
             if fit is not leader.fit:
                 candidates[candidates.index(leader)] = _candidate(chain, fit, ident, valid, before,
-                                                                  time.perf_counter() - leader.seconds - fit.seconds,
-                                                                  margin, progress)
+                                                                  leader.seconds + fit.seconds, margin, progress)
     accepted = [c for c in candidates if c.accepted]
     winner = min(accepted, key=lambda c: (c.validation.rms_pct, c.delta_bic)) if accepted else None
     return Round(before, candidates, failures, winner)
@@ -400,22 +400,21 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     failed = [name for name, check in tests_before.checks.items() if not check.passed]
     _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
-    rounds, current, tests = [], before, tests_before
+    rounds, current = [], before
     while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
+        tests = validation.tests(chain.predict(t_v, u_v)) if rounds else tests_before
         found = _search_round(chain, ident_record, validation, current, tests, operators is None and not rounds,
                               progress)
         rounds.append(found)
         if found.winner is None:
             break
-        chain = found.winner.model
-        current = found.winner.validation
-        tests = validation.tests(chain.predict(t_v, u_v))
+        chain, current = found.winner.model, found.winner.validation
         _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
-        current = validation.errors(chain.predict(t_v, u_v))
-        tests = validation.tests(chain.predict(t_v, u_v))
     predicted_after = chain.predict(t_v, u_v) if chain.effects else predicted_before
+    after = validation.errors(predicted_after) if chain.effects else before
+    tests_after = validation.tests(predicted_after) if chain.effects else tests_before
     found_order = [found.winner.effect for found in rounds if found.winner is not None]
     return Diagnosis(
         effect=found_order[0] if found_order else "none",
@@ -423,11 +422,11 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         evidence=tests_before.evidence(),
         parameters=chain.parameters,
         before=before,
-        after=current,
+        after=after,
         base=base,
         chain=chain,
         tests_before=tests_before,
-        tests_after=tests,
+        tests_after=tests_after,
         candidates=rounds[0].candidates if rounds else [],
         rounds=rounds,
         validation_predicted_before=predicted_before,

@@ -43,7 +43,7 @@ from sma_stage.identify.diagnosis import diagnose
 from sma_stage.identify.effects import EffectFit
 from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
-from sma_stage.identify.report import fit_report
+from sma_stage.identify.report import fit_report, kept_model
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.rosbag_io import output_times
 from sma_stage.io.series import Series
@@ -453,7 +453,7 @@ class IdentificationNode(Node):
         operators = int(self.values["operators"]) or None
         report = fit_recording(series, operators, float(self.values["holdout_fraction"]),
                                int(self.values["diagnose_rounds"]))
-        model = report.get("lag_model") or {**report["model"], "lag_tau_s": 0.0, "heating_reference_a": 0.0}
+        model = kept_model(report)
         report["warnings"] = []
         report["model_file"] = self.write_model(model, series)
         report["compensator"] = {**self.push(model), "lag_tau_s": model["lag_tau_s"],
@@ -467,7 +467,7 @@ class IdentificationNode(Node):
         path = str(self.values["model_file"])
         if not path:
             return None
-        params = GPIParameters.from_dict(model["parameters"], output_unit=model.get("output_unit", "m"))
+        params = GPIParameters.from_dict(model["parameters"], output_unit=model["output_unit"])
         metadata = {"source": "identification node ~/refit", "samples": len(series),
                     "lag_tau_s": model["lag_tau_s"], "heating_reference_a": model["heating_reference_a"]}
         try:
