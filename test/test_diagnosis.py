@@ -3,6 +3,7 @@ effect injected and not declared (test/synthetic.py simulates it independently o
 
 import functools
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,9 +19,10 @@ from sma_stage.identify.effects import (
     rate_forward,
     rate_model_output,
 )
-from sma_stage.identify.fit import predict
+from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.identify.residual_tests import TEST_NAMES, residual_tests
+from sma_stage.io import read_csv
 from sma_stage.model import forward
 
 FLOOR_FACTOR = 1.5
@@ -246,7 +248,36 @@ def test_a_candidate_that_cannot_be_fitted_is_reported_not_fatal(monkeypatch):
     result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y))
     assert result.effect == "drift"
     assert "rate" not in {c.effect for c in result.candidates}
-    assert result.to_dict()["not_fitted"] == {"rate": "rate: the GPI cannot be fitted"}
+    reported = [entry for entry in result.to_dict()["candidates"] if entry["effect"] == "rate"]
+    assert reported == [{"effect": "rate", "fitted": False, "accepted": False,
+                         "reason": "not fitted: rate: the GPI cannot be fitted"}]
+
+
+def test_a_numerical_failure_inside_a_candidate_is_reported_not_fatal(monkeypatch):
+    import sma_stage.identify.effects as effects_module
+
+    def overflowing(*args, **kwargs):
+        raise ValueError("min() arg is an empty sequence")
+
+    monkeypatch.setattr(effects_module.DriftEffect, "fit", overflowing)
+    case = make_case("none", seed=SEED, duration_s=300.0)
+    ident, valid = case.identification, case.validation
+    result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), max_rounds=1)
+    assert result.failures == {"drift": "drift: min() arg is an empty sequence"}
+    assert {c.effect for c in result.candidates} == {"thermal_lag", "delay", "rate"}
+
+
+def test_a_recording_whose_creep_fit_fails_is_diagnosed_with_every_candidate():
+    """The end-to-end test's recording (1 Hz, starting mid-excitation) on which the creep term of the drift
+    candidate could be fitted neither warm nor cold: diagnose raised ValueError from min() of no fits."""
+    series = read_csv(Path(__file__).parent / "data" / "refit_drift_unfittable.csv", min_samples=60)
+    ident, _ = series.split(0.75)
+    base = fit_gpi(ident.input, ident.output, operators=5)
+    result = diagnose(ident, series, base=base, operators=5, max_rounds=1, scored_from=len(ident))
+    fitted = {candidate.effect for candidate in result.candidates}
+    assert fitted | set(result.failures) == {"thermal_lag", "delay", "rate", "drift"}
+    drift = next(candidate for candidate in result.candidates if candidate.effect == "drift")
+    assert set(drift.parameters) == {"drift_m_per_s"}, "the linear drift kept where the creep cannot be fitted"
 
 
 def test_residual_tests_serialise_to_json():

@@ -49,7 +49,13 @@ def start_system(nodes: NodeProcesses, model_file) -> None:
 
 
 def refit_after_excitation(client: RosClient, check) -> dict:
-    ok, message = client.trigger("identification/excite")
+    deadline = time.monotonic() + 30.0
+    while True:
+        ok, message = client.trigger("identification/excite")
+        if ok or "no /clock" not in message or time.monotonic() > deadline:
+            break
+        check()
+        time.sleep(0.1)
     assert ok, message
     time.sleep(EXCITE_S / TIME_SCALE)
     deadline = time.monotonic() + 60.0

@@ -30,7 +30,7 @@ from std_msgs.msg import Float64, String  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from sma_stage.errors import InputError  # noqa: E402
-from sma_stage.io import read_bag  # noqa: E402
+from sma_stage.io import read_bag, read_csv  # noqa: E402
 from sma_stage.model import GPIInverseStream, GPIParameters, load_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.compensator_node import DEFAULT_MODEL, CompensatorNode  # noqa: E402
@@ -552,8 +552,10 @@ def test_identification_refuses_a_refit_without_enough_data(ros):
     assert identification.last_report is None
 
 
-def test_identification_refuses_a_refit_on_nan_data(ros):
-    identification = identification_node(ros, min_samples=50, push_timeout=0.1)
+def test_identification_refuses_a_refit_on_nan_data(ros, tmp_path):
+    model_file = tmp_path / "model.yaml"
+    identification = identification_node(ros, min_samples=50, push_timeout=0.5, model_file=str(model_file))
+    compensator = compensator_node(ros, rate_hz=2.0)
     fake = FakeStage(ros, identification)
     currents = 4.0 * np.sin(np.linspace(0.0, 4.0 * np.pi, 80))
     positions = np.tanh(currents / 3.0) * 1e-4
@@ -562,6 +564,50 @@ def test_identification_refuses_a_refit_on_nan_data(ros):
     wait_until(lambda: len(identification.outputs) == 80, 5.0, "80 recorded positions")
     answer = refit_answer(ros, fake.node)
     assert not answer.success and "nan" in answer.message.lower() and "output" in answer.message
+    assert "\n" not in answer.message
+    assert not model_file.exists() and compensator.inverse.params == DEFAULT_PARAMS, "nothing in force changed"
+
+
+DRIFT_UNFITTABLE = REPO / "test" / "data" / "refit_drift_unfittable.csv"
+
+
+def test_identification_refit_survives_a_candidate_that_cannot_be_fitted(ros, tmp_path, monkeypatch):
+    """The end-to-end recording on which the drift candidate's creep fit failed and took the refit down."""
+    model_file = tmp_path / "model.yaml"
+    identification = identification_node(ros, operators=5, min_samples=60, diagnose_rounds=1, push_timeout=5.0,
+                                         model_file=str(model_file))
+    compensator = compensator_node(ros, rate_hz=2.0)
+    monkeypatch.setattr(identification, "snapshot", lambda: read_csv(DRIFT_UNFITTABLE, min_samples=60))
+    answer = refit_answer(ros, ros.probe())
+    assert answer.success, answer.message
+    report = json.loads(answer.message)
+    candidates = {entry["effect"] for entry in report["diagnosis"]["candidates"]}
+    assert candidates == {"thermal_lag", "delay", "rate", "drift"}, "every candidate reported, fitted or not"
+    assert report["compensator"]["pushed"], report["compensator"]["message"]
+    assert load_model_file(model_file).parameters == compensator.inverse.params
+
+
+def test_identification_refit_keeps_the_plain_fit_when_the_diagnosis_fails(ros, tmp_path, monkeypatch):
+    import sma_stage.nodes.identification_node as module
+
+    def broken_diagnosis(*args, **kwargs):
+        raise RuntimeError("a bug\nover two lines")
+
+    monkeypatch.setattr(module, "diagnose", broken_diagnosis)
+    model_file = tmp_path / "model.yaml"
+    identification = identification_node(ros, operators=5, min_samples=50, diagnose_rounds=1, push_timeout=5.0,
+                                         model_file=str(model_file))
+    compensator = compensator_node(ros, rate_hz=2.0)
+    fake = FakeStage(ros, identification)
+    fake.publish(4.0 * np.sin(np.linspace(0.0, 4.0 * np.pi, 120)))
+    wait_until(lambda: len(identification.outputs) == 120, 5.0, "120 recorded positions")
+    answer = refit_answer(ros, fake.node)
+    assert answer.success, answer.message
+    report = json.loads(answer.message)
+    assert "diagnosis" not in report
+    assert report["warnings"] == ["diagnosis failed, the plain GPI fit is kept: RuntimeError: a bug over two lines"]
+    fitted = GPIParameters.from_dict(report["model"]["parameters"])
+    assert compensator.inverse.params == fitted and load_model_file(model_file).parameters == fitted
 
 
 def test_identification_refit_without_a_compensator_warns_in_the_report(ros, tmp_path):
@@ -666,6 +712,14 @@ def test_compensator_pi_loop_settles_the_simulated_stage_on_sim_time(ros):
     wait_until(settled, 20.0, f"the stage to settle at {target} m")
     assert stage.state.time_s > 50.0, "the loop ran on simulated time"
     assert abs(compensator.integral_m) > 1e-6, "the integral corrected the feedforward model's error"
+
+
+def test_identification_refuses_to_excite_on_sim_time_before_any_clock(ros):
+    """Before the first /clock the node's time is 0, and a signal started then would begin at the simulated
+    time the stage has already run (the end-to-end test once got records starting 272 s into the signal)."""
+    identification = identification_node(ros, use_sim_time=True)
+    refused = ros.call(ros.probe(), Trigger, "identification/excite")
+    assert not refused.success and "no /clock message" in refused.message and not identification.exciting
 
 
 def test_identification_excites_and_refits_on_sim_time(ros):

@@ -25,6 +25,8 @@ from sma_stage.errors import InputError
 from sma_stage.identify.effects import (
     EFFECT_NAMES,
     EffectFit,
+    NotFitted,
+    attempt,
     check_record,
     fit_effect,
     information_criterion,
@@ -73,6 +75,7 @@ class CandidateResult:
         """Plain values for the JSON report."""
         return {
             "effect": self.effect,
+            "fitted": True,
             "parameters": dict(self.parameters),
             "identification": _errors(self.identification),
             "validation": _errors(self.validation),
@@ -122,10 +125,16 @@ class Diagnosis:
             "before": {"validation": _errors(self.before)},
             "after": {"validation": _errors(self.after)},
             "effects": list(self.effects),
-            "candidates": [candidate.to_dict() for candidate in self.candidates],
-            **({"not_fitted": dict(self.failures)} if self.failures else {}),
+            "candidates": _candidate_list(self.candidates, self.failures),
             "rounds": [found.to_dict() for found in self.rounds],
         }
+
+
+def _candidate_list(candidates: list[CandidateResult], failures: dict[str, str]) -> list[dict[str, object]]:
+    """The report's candidate list: each fitted candidate, then each that could not be fitted (with why)."""
+    return ([candidate.to_dict() for candidate in candidates]
+            + [{"effect": name, "fitted": False, "accepted": False, "reason": f"not fitted: {reason}"}
+               for name, reason in failures.items()])
 
 
 def _errors(metrics: ErrorMetrics) -> dict[str, float]:
@@ -241,8 +250,7 @@ class Round:
             "added": self.winner.effect if self.winner else "none",
             "before": {"validation": _errors(self.before)},
             "after": {"validation": _errors(self.winner.validation if self.winner else self.before)},
-            "candidates": [candidate.to_dict() for candidate in self.candidates],
-            **({"not_fitted": dict(self.failures)} if self.failures else {}),
+            "candidates": _candidate_list(self.candidates, self.failures),
         }
 
 
@@ -301,30 +309,41 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
     t_i, u_i, y_i = ident
     v_i, w_i = chain.data(t_i, u_i, y_i)
     last = chain.last
-    base = chain.base if first else fit_gpi(v_i, w_i, operators=last.operators, initial=last.gpi_parameters,
-                                            output_unit=last.gpi_parameters.output_unit)
+    names = [effect for effect in rank_candidates(tests) if effect not in chain.effects]
+    base = chain.base if first else attempt("GPI", lambda: fit_gpi(
+        v_i, w_i, operators=last.operators, initial=last.gpi_parameters, output_unit=last.gpi_parameters.output_unit))
+    if isinstance(base, NotFitted):
+        return Round(before, [], {name: f"on top of {' + '.join(chain.effects)}: {base}" for name in names}, None)
     candidates, failures = [], {}
-    for name in (effect for effect in rank_candidates(tests) if effect not in chain.effects):
+    for name in names:
         _report(progress, f"fitting candidate {name}" + ("" if first else f" on top of {' + '.join(chain.effects)}"))
-        try:
+
+        def judged(name: str = name) -> CandidateResult:
             fit = fit_effect(name, t_i, v_i, w_i, base, progress)
-        except InputError as error:
-            failures[name] = str(error)
-            _report(progress, f"{name}: not fitted: {error}")
+            return _candidate(chain, fit, ident, valid, before, fit.seconds, margin, progress)
+
+        outcome = attempt(name, judged)
+        if isinstance(outcome, NotFitted):
+            failures[name] = str(outcome)
+            _report(progress, f"{name}: not fitted: {outcome}")
             continue
-        candidates.append(_candidate(chain, fit, ident, valid, before, fit.seconds, margin, progress))
-        _report(progress, f"{name}: {candidates[-1].reason}")
+        candidates.append(outcome)
+        _report(progress, f"{name}: {outcome.reason}")
     if recount:
         leaders = sorted((c for c in candidates if c.accepted), key=lambda c: c.validation.rms_pct)[:RECOUNTED]
         for leader in leaders:
-            try:
+
+            def recounted(leader: CandidateResult = leader) -> CandidateResult:
                 fit = recount_effect(leader.fit, t_i, v_i, w_i, progress)
-            except InputError as error:
-                _report(progress, f"{leader.effect}: operator count kept: {error}")
+                if fit is leader.fit:
+                    return leader
+                return _candidate(chain, fit, ident, valid, before, leader.seconds + fit.seconds, margin, progress)
+
+            outcome = attempt(leader.effect, recounted)
+            if isinstance(outcome, NotFitted):
+                _report(progress, f"operator count kept: {outcome}")
                 continue
-            if fit is not leader.fit:
-                candidates[candidates.index(leader)] = _candidate(chain, fit, ident, valid, before,
-                                                                  leader.seconds + fit.seconds, margin, progress)
+            candidates[candidates.index(leader)] = outcome
     accepted = [c for c in candidates if c.accepted]
     winner = min(accepted, key=lambda c: (c.validation.rms_pct, c.delta_bic)) if accepted else None
     return Round(before, candidates, failures, winner)
@@ -343,12 +362,16 @@ def refine(chain: Chain, ident: Record, sweeps: int = REFINE_SWEEPS, progress: P
             others = chain.without(index)
             v_i, w_i = others.data(t_i, u_i, y_i)
             last = others.last
-            try:
+
+            def refitted(name: str = name, v_i: np.ndarray = v_i, w_i: np.ndarray = w_i,
+                         last: EffectFit = last) -> EffectFit:
                 start = fit_gpi(v_i, w_i, operators=last.operators, initial=last.gpi_parameters,
                                 output_unit=last.gpi_parameters.output_unit)
-                fit = fit_effect(name, t_i, v_i, w_i, start, progress)
-            except InputError as error:
-                _report(progress, f"{name}: not refitted: {error}")
+                return fit_effect(name, t_i, v_i, w_i, start, progress)
+
+            fit = attempt(name, refitted)
+            if isinstance(fit, NotFitted):
+                _report(progress, f"not refitted: {fit}")
                 continue
             if fit.cost < chain.last.cost:
                 chain = others.then(fit)
@@ -362,10 +385,9 @@ def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chai
     t_i, u_i, y_i = ident
     others = chain.without(len(chain.stages) - 1)
     v_i, w_i = others.data(t_i, u_i, y_i)
-    try:
-        fit = recount_effect(chain.last, t_i, v_i, w_i, progress)
-    except InputError as error:
-        _report(progress, f"operator count kept: {error}")
+    fit = attempt(chain.last.effect, lambda: recount_effect(chain.last, t_i, v_i, w_i, progress))
+    if isinstance(fit, NotFitted):
+        _report(progress, f"operator count kept: {fit}")
         return chain
     return chain if fit is chain.last else others.then(fit)
 

@@ -18,8 +18,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numba
 import numpy as np
@@ -48,6 +49,30 @@ Progress = Callable[[str], None] | None
 Predictor = Callable[[np.ndarray, np.ndarray], np.ndarray]
 Transform = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (t [s], u [A]) -> the input the GPI sees [A]
 Offset = Callable[[np.ndarray], np.ndarray]  # t [s] -> what the effect adds to the output [output unit]
+Fitted = TypeVar("Fitted")
+# What a fit that cannot be had raises: refused data (InputError) or a numerical failure on the way
+# (an overflow, a singular matrix, scipy refusing a non-finite residual).
+FIT_FAILURES = (InputError, ArithmeticError, np.linalg.LinAlgError, ValueError)
+
+
+class NotFitted(InputError):
+    """No fit could be found for a candidate effect (or one form of it); the message says why."""
+
+
+def attempt(what: str, action: Callable[[], Fitted]) -> Fitted | NotFitted:
+    """action()'s result, or NotFitted("what: why") when it could not be fitted: the one place where a
+    candidate that cannot be fitted becomes a reported outcome instead of an error."""
+    try:
+        return action()
+    except FIT_FAILURES as error:
+        reason = " ".join(str(error).split()) or type(error).__name__
+        return NotFitted(reason if reason.startswith(f"{what}:") else f"{what}: {reason}")
+
+
+def lowest_cost(fits: Iterable[Fitted | None]) -> Fitted | None:
+    """The fit of least finite .cost among those found (None entries are fits that failed); None if none."""
+    found = [fit for fit in fits if fit is not None and math.isfinite(fit.cost)]
+    return min(found, key=lambda fit: fit.cost) if found else None
 
 
 @dataclass(frozen=True)
@@ -190,19 +215,17 @@ def _fit_or_none(v: np.ndarray, y: np.ndarray, operators: int | None, initial: G
                  regressors: np.ndarray | None = None, starts: int | None = None) -> FitResult | None:
     """fit_gpi, or None where the data cannot be fitted (e.g. a delay so long that the output falls as
     the input rises)."""
-    try:
-        return fit_gpi(v, y, operators=operators, initial=initial, output_unit=unit, regressors=regressors,
-                       starts=starts)
-    except InputError:
-        return None
+    result = attempt("GPI", lambda: fit_gpi(v, y, operators=operators, initial=initial, output_unit=unit,
+                                             regressors=regressors, starts=starts))
+    return None if isinstance(result, NotFitted) else result
 
 
 def _pick(fits: Sequence) -> object:
     """fit_gpi's operator-count rule over fits of several counts (anything with .cost and .operators):
-    the smallest count whose RMS error is within OPERATOR_MARGIN of the best; of it, the lowest cost."""
-    found = [fit for fit in fits if fit is not None]
-    best = min(fit.cost for fit in found)
-    eligible = [fit for fit in found if math.sqrt(fit.cost) <= (1.0 + OPERATOR_MARGIN) * math.sqrt(best)]
+    the smallest count whose RMS error is within OPERATOR_MARGIN of the best; of it, the lowest cost.
+    The first fit must exist (the one the others are compared with)."""
+    best = lowest_cost(fits).cost
+    eligible = [fit for fit in fits if fit is not None and math.sqrt(fit.cost) <= (1.0 + OPERATOR_MARGIN) * math.sqrt(best)]
     count = min(fit.operators for fit in eligible)
     return min((fit for fit in eligible if fit.operators == count), key=lambda fit: fit.cost)
 
@@ -223,8 +246,7 @@ class _Refits:
             tries = [self.fits.get(value), self._try(value, self._nearest(value).parameters)]
             if thorough:
                 tries.append(self._try(value, None, THOROUGH_STARTS))
-            found = [fit for fit in tries if fit is not None]
-            self.fits[value] = min(found, key=lambda fit: fit.cost) if found else None
+            self.fits[value] = lowest_cost(tries)
         return self.fits[value]
 
     def cost(self, log_value: float, thorough: bool = False) -> float:
@@ -341,7 +363,7 @@ class InputTransformEffect(Effect):
     def _finish(self, value: float, gpi: FitResult | None, y: np.ndarray, parameter_count: int, started: float,
                 progress: Progress) -> EffectFit:
         if gpi is None:
-            raise InputError(f"{self.name}: the GPI cannot be fitted at {self.parameter} = {value:.4g}")
+            raise NotFitted(f"{self.name}: the GPI cannot be fitted at {self.parameter} = {value:.4g}")
         _report(progress, f"{self.name}: {self.parameter} = {value:.4g}, {gpi.operators} operators")
         return _finish(self.name, {self.parameter: value}, gpi.parameters, gpi.operators, y, gpi.predicted,
                        parameter_count, started, lambda tv, uv: predict(gpi, self.transform(tv, uv, value)),
@@ -384,23 +406,27 @@ class DriftEffect(Effect):
 
     def _fit_at(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, start: GPIParameters, count: int,
                 plain_count: int, started: float, progress: Progress) -> EffectFit:
-        """Linear drift, then linear drift and creep, at one operator count; the lower BIC is kept."""
+        """Linear drift, then linear drift and creep, at one operator count; the lower BIC is kept (the
+        linear drift alone where the creep cannot be fitted)."""
         unit = start.output_unit
         linear = self._refit(u, y, count, start, unit, drift_regressors(t, None))
+        if linear is None:
+            raise NotFitted(f"drift: the GPI with a linear drift cannot be fitted at {count} operators")
         tau_c = _creep_time_constant(t, y, linear)
         creep = self._refit(u, y, count, linear.parameters, unit, drift_regressors(t, tau_c))
         samples, k = y.size, plain_count
-        if information_criterion(creep.cost, samples, k + 3) < information_criterion(linear.cost, samples, k + 1):
+        if creep is not None and (information_criterion(creep.cost, samples, k + 3)
+                                  < information_criterion(linear.cost, samples, k + 1)):
             return self._finish(t, y, creep, tau_c, k + 3, started, progress)
         return self._finish(t, y, linear, None, k + 1, started, progress)
 
     @staticmethod
     def _refit(u: np.ndarray, y: np.ndarray, count: int, start: GPIParameters, unit: str,
-               columns: np.ndarray) -> FitResult:
-        """The better of a warm-started and a cold fit (the warm one may keep what the plain GPI absorbed)."""
-        return min((fit for fit in (_fit_or_none(u, y, count, start, unit, columns),
-                                    _fit_or_none(u, y, count, None, unit, columns, THOROUGH_STARTS))
-                    if fit is not None), key=lambda fit: fit.cost)
+               columns: np.ndarray) -> FitResult | None:
+        """The better of a warm-started and a cold fit (the warm one may keep what the plain GPI absorbed);
+        None when neither can be had."""
+        return lowest_cost((_fit_or_none(u, y, count, start, unit, columns),
+                            _fit_or_none(u, y, count, None, unit, columns, THOROUGH_STARTS)))
 
     def _finish(self, t: np.ndarray, y: np.ndarray, gpi: FitResult, tau_c: float | None, parameter_count: int,
                 started: float, progress: Progress) -> EffectFit:
@@ -539,15 +565,13 @@ class ThermalLagEffect(Effect):
         readings = [self._reading(None)]
         if reference > 0.0:
             readings.append(self._reading(reference))
-        fits = []
-        for reading in readings:
-            try:
-                fits.append(reading.fit(t, u, y, base, progress))
-            except InputError:
-                continue
-        if not fits:
-            raise InputError("thermal_lag: the GPI cannot be fitted on the lagged current nor on the lagged heating")
-        return min(fits, key=lambda fit: fit.cost)
+        outcomes = [attempt(self.name, lambda reading=reading: reading.fit(t, u, y, base, progress))
+                    for reading in readings]
+        best = lowest_cost(outcome for outcome in outcomes if not isinstance(outcome, NotFitted))
+        if best is None:
+            raise NotFitted("thermal_lag: the GPI cannot be fitted on the lagged current nor on the lagged "
+                            f"heating ({'; '.join(str(outcome) for outcome in outcomes)})")
+        return best
 
     def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
                 progress: Progress = None) -> EffectFit:

@@ -570,8 +570,8 @@ def _well_scaled_choice(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, fi
     """The operator count by _choose_count among the fits whose parameters pass scale_problems; its
     normalised parameters and regressor coefficients; why the counts passed over were refused.
     InputError when none passes."""
-    costs = {count: found.cost for count, found in fits.items()}
-    refused = []
+    costs = {count: found.cost for count, found in fits.items() if math.isfinite(found.cost)}
+    refused = [f"{count} operators: the search ended on a non-finite cost" for count in fits if count not in costs]
     while costs:
         chosen = _choose_count(costs)
         params, coefficients = _final_parameters(u, y, regressors, chosen, fits[chosen], unit)

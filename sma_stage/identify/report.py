@@ -84,6 +84,9 @@ def diagnosis_markdown(diagnosis: dict) -> list[str]:
         lines += ["", f"Round {number}: added **{found['added']}**.", "",
                   "| candidate | parameters | validation RMS % | delta BIC | kept | why |", "|---|---|---|---|---|---|"]
         for candidate in found["candidates"]:
+            if not candidate.get("fitted", True):
+                lines.append(f"| {candidate['effect']} | | | | no | {candidate['reason']} |")
+                continue
             values = ", ".join(f"{key} = {value:.4g}" for key, value in candidate["parameters"].items())
             lines.append(f"| {candidate['effect']} | {values} | {candidate['validation']['rms_pct']:.3f} | "
                          f"{candidate['delta_bic']:.1f} | {'yes' if candidate['accepted'] else 'no'} | "

@@ -125,8 +125,13 @@ def fit_recording(series: Series, operators: int | None, holdout_fraction: float
     report = fit_report(fit, validation, source)
     report["samples"] = {"identification": len(ident), "validation": len(tail)}
     if diagnose_rounds > 0 and validation is not None:
-        found = diagnose(ident, series, base=fit, operators=operators, max_rounds=diagnose_rounds,
-                         scored_from=len(ident), output_unit=fit.parameters.output_unit)
+        try:
+            found = diagnose(ident, series, base=fit, operators=operators, max_rounds=diagnose_rounds,
+                             scored_from=len(ident), output_unit=fit.parameters.output_unit)
+        except Exception as error:  # noqa: BLE001 -- the fit stands whatever the diagnosis meets
+            report["diagnosis_failed"] = (f"diagnosis failed, the plain GPI fit is kept: {type(error).__name__}: "
+                                          f"{' '.join(str(error).split())}")
+            return report
         report["diagnosis"] = found.to_dict()
         first = found.rounds[0].winner if found.rounds else None
         if first is not None and first.effect == "thermal_lag":
@@ -352,6 +357,11 @@ class IdentificationNode(Node):
             response.success = False
             response.message = f"an excitation is running ({self.excitation_left_s():.1f} s of signal left)"
             return response
+        if self.now_ns() == 0:
+            response.success = False
+            response.message = ("no time yet: use_sim_time is true and no /clock message has come (is the stage "
+                                "running with use_sim_time?); the signal would start part-way through")
+            return response
         if self.values["clear_on_excite"]:
             self.on_clear(request, Trigger.Response())
         with self._lock:
@@ -454,7 +464,7 @@ class IdentificationNode(Node):
         report = fit_recording(series, operators, float(self.values["holdout_fraction"]),
                                int(self.values["diagnose_rounds"]))
         model = kept_model(report)
-        report["warnings"] = []
+        report["warnings"] = [report["diagnosis_failed"]] if "diagnosis_failed" in report else []
         report["model_file"] = self.write_model(model, series)
         report["compensator"] = {**self.push(model), "lag_tau_s": model["lag_tau_s"],
                                  "heating_reference_a": model["heating_reference_a"]}
