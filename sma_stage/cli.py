@@ -26,6 +26,24 @@ def operator_count(text: str) -> int:
         raise argparse.ArgumentTypeError(str(error)) from None
 
 
+def fraction(text: str) -> float:
+    """A number strictly between 0 and 1 (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number between 0 and 1, got {text!r}") from None
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number between 0 and 1, got {text!r}")
+    return value
+
+
+def round_count(text: str) -> int:
+    """An integer from 1 to 4 (argparse type)."""
+    if not text.strip().isdigit() or not 1 <= int(text) <= 4:
+        raise argparse.ArgumentTypeError(f"expected a whole number from 1 to 4, got {text!r}")
+    return int(text)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with one subparser per command."""
     parser = argparse.ArgumentParser(prog="gpi_tool", description=__doc__.splitlines()[0])
@@ -40,6 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit.set_defaults(handler=run_identify_command("run_fit"))
     diagnose = commands.add_parser("diagnose", help="fit, find what the model lacks, add it, report before/after")
     add_data_arguments(diagnose, validate_required=True)
+    diagnose.add_argument("--rounds", type=round_count, default=4,
+                          help="rounds of the residual diagnosis, 1-4 (default 4; ~/refit's diagnose_rounds)")
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))
     simulate = commands.add_parser("simulate", help="run the stage simulator offline and write a CSV")
     from sma_stage.commands.simulate import add_arguments
@@ -52,8 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
 def add_data_arguments(parser: argparse.ArgumentParser, validate_required: bool) -> None:
     """DATA, --validate and the options that say how to read them, --operators, --out, --json."""
     parser.add_argument("data", type=Path, metavar="DATA", help="CSV file (t,input,output) or rosbag2 directory")
-    parser.add_argument("--validate", type=Path, metavar="DATA", required=validate_required,
-                        help="validation data, same form as DATA")
+    validation = parser.add_mutually_exclusive_group(required=validate_required)
+    validation.add_argument("--validate", type=Path, metavar="DATA", help="validation data, same form as DATA")
+    validation.add_argument("--holdout", type=fraction, metavar="FRACTION",
+                            help="validate on this last fraction of DATA instead, every model run over all of it "
+                                 "(as ~/refit does with its holdout_fraction)")
     parser.add_argument("--operators", type=operator_count, default=None,
                         help="operator count (default: chosen from the data)")
     parser.add_argument("--columns", help='CSV column names, e.g. "t=time,input=current,output=pos" (t= for index)')

@@ -21,8 +21,7 @@ import numpy as np
 from sma_stage.commands.paper import evaluate_paper
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
-from sma_stage.identify.report import kept_model
-from sma_stage.model import PARAMETER_NAMES, forward, inverse, load_model_file
+from sma_stage.model import IdentifiedModel, forward, inverse, load_model_file
 from sma_stage.nodes.launch import CONFIG_DIR
 from sma_stage.plots import Panel, save_panels
 from sma_stage.signals import paper_validation_signal
@@ -259,9 +258,6 @@ def excite_and_refit(client: object, session: StageSession, settings: EndToEndSe
     return json.loads(message), (float(positions.min()), float(positions.max()))
 
 
-LEAD_PARAMETERS = ("operators", "lag_tau_s", "heating_reference_a")
-
-
 def describe_diagnosis(report: dict) -> str:
     """One line: what the refit's diagnosis named and what went to the compensator."""
     diagnosis = report.get("diagnosis")
@@ -269,10 +265,11 @@ def describe_diagnosis(report: dict) -> str:
         return "no diagnosis (diagnose_rounds 0): the plain GPI went to the compensator"
     before, after = diagnosis["before"]["validation"]["rms_pct"], diagnosis["after"]["validation"]["rms_pct"]
     named = ", ".join(diagnosis["effects"]) or "none"
-    lead = report.get("lag_model")
-    sent = (f"the GPI with the lag went to the compensator (lag_tau_s {lead['lag_tau_s']:.2f} s, "
-            f"heating_reference_a {lead['heating_reference_a']:.2f} A)" if lead else "the plain GPI went to the compensator")
-    return f"diagnosis of the residual: {named}; held-out tail rms {before:.2f} % -> {after:.2f} %; {sent}"
+    effects = report["identified_model"]["effects"]
+    sent = ("the GPI with " + ", ".join(f"{effect['kind']} ({', '.join(f'{k} {v:.4g}' for k, v in effect['parameters'].items())})"
+                                        for effect in effects) if effects else "the plain GPI")
+    return (f"diagnosis of the residual: {named}; held-out tail rms {before:.2f} % -> {after:.2f} %; "
+            f"{sent} went to the compensator")
 
 
 RUN_ORDER = ("default, feedforward", "identified, feedforward", "default, PI loop", "identified, PI loop")
@@ -294,8 +291,7 @@ def track_with_both_models(client: object, session: StageSession, stroke: tuple[
                                                        check)
         client.set_parameters("compensator", pi)
         runs["identified, PI loop"] = tracking_run(session, "identified model, PI loop", stroke, settings, check)
-    client.set_parameters("compensator", {"model_file": str(DEFAULT_MODEL), "lag_tau_s": 0.0,
-                                          "heating_reference_a": 0.0, **pi})
+    client.set_parameters("compensator", {"model": "", "model_file": str(DEFAULT_MODEL), **pi})
     ok, message = client.trigger("compensator/reload")
     if not ok:
         raise InputError(f"compensator ~/reload: {message}")
@@ -352,9 +348,8 @@ def run_end_to_end(nodes: object, settings: EndToEndSettings, out_dir: Path, lau
         ready = time.monotonic()
         report, stroke = excite_and_refit(client, session, settings, nodes.check_running)
         refitted = time.monotonic()
-        kept = kept_model(report)
-        held = client.get_parameters("compensator", [*PARAMETER_NAMES, *LEAD_PARAMETERS])
-        pushed = held == {**kept["parameters"], **{name: kept[name] for name in LEAD_PARAMETERS}}
+        held = client.get_parameters("compensator", ["model"])["model"]
+        pushed = bool(held) and IdentifiedModel.from_yaml_text(held).without_state().to_dict() == report["identified_model"]
         runs = track_with_both_models(client, session, stroke, settings, nodes.check_running,
                                       identified=bool(report["compensator"]["pushed"]))
     exits = nodes.stop_all()

@@ -1,6 +1,7 @@
 """The control core: the lag lead, the PI loop with anti-windup, and its input checks (no ROS)."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -8,7 +9,7 @@ import pytest
 from sma_stage.control import Compensator
 from sma_stage.demo import DEFAULT_MODEL
 from sma_stage.errors import InputError
-from sma_stage.model import GPIForwardStream, GPIInverseStream, load_model_file
+from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
 
 MODEL = load_model_file(DEFAULT_MODEL)
 LIMIT_A = 5.0
@@ -16,6 +17,15 @@ LIMIT_A = 5.0
 
 def inverse_stream(method: str = "exact", limit_a: float = LIMIT_A) -> GPIInverseStream:
     return GPIInverseStream(MODEL.parameters, MODEL.operators, method, input_range=(-limit_a, limit_a))
+
+
+def with_effects(*effects: Effect) -> IdentifiedModel:
+    return IdentifiedModel(MODEL.parameters, MODEL.operators, effects)
+
+
+def lagged(tau_s: float, heating_reference_a: float = 0.0) -> IdentifiedModel:
+    reference = {"joule_reference_a": heating_reference_a} if heating_reference_a else {}
+    return with_effects(Effect("thermal_lag", {"tau_s": tau_s, **reference}))
 
 
 def slow_setpoints(steps: int, dt_s: float) -> np.ndarray:
@@ -32,17 +42,18 @@ def lag_input(current_a: float, heating_reference_a: float) -> float:
 def test_the_lead_undoes_a_first_order_lag_exactly(heating_reference_a):
     tau_s, dt_s = 8.0, 0.2
     setpoints = slow_setpoints(3000, dt_s)
-    wanted = inverse_stream().run(setpoints)[0]
-    core = Compensator(inverse_stream(), lag_tau_s=tau_s, heating_reference_a=heating_reference_a)
+    core = Compensator(lagged(tau_s, heating_reference_a), LIMIT_A)
+    reach = core.inverse.input_range  # the lag's drive: the Joule heating's range in the heating reading
+    wanted = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=reach).run(setpoints)[0]
     kept = math.exp(-dt_s / tau_s)
-    lagged, unclipped = 0.0, 0
+    state, unclipped = 0.0, 0
     for setpoint, target in zip(setpoints, wanted, strict=True):
         current = core.command(setpoint, None, dt_s)
         drive = lag_input(current, heating_reference_a)
-        lagged = drive + (lagged - drive) * kept  # the current held for dt_s through tau v' = u - v
+        state = drive + (state - drive) * kept  # the current held for dt_s through tau v' = u - v
         if core.saturated == 0:
             unclipped += 1
-            assert lagged == pytest.approx(target, abs=1e-12)
+            assert state == pytest.approx(target, abs=1e-12)
     assert unclipped >= 0.99 * len(setpoints)
 
 
@@ -50,7 +61,7 @@ def test_the_lead_tends_to_v_plus_tau_dv_dt_for_short_steps():
     tau_s, dt_s = 8.0, 0.001
     setpoints = slow_setpoints(20000, dt_s)[10000:]
     wanted = inverse_stream().run(setpoints)[0]
-    core = Compensator(inverse_stream(), lag_tau_s=tau_s)
+    core = Compensator(lagged(tau_s), LIMIT_A)
     currents = np.array([core.command(setpoint, None, dt_s) for setpoint in setpoints])
     expected = wanted[1:] + tau_s * np.diff(wanted) / dt_s
     settled = slice(6000, None)  # the lag starts idle, at 0 A: 6 s to catch up at the current limit
@@ -60,14 +71,14 @@ def test_the_lead_tends_to_v_plus_tau_dv_dt_for_short_steps():
 @pytest.mark.parametrize("method", ["exact", "analytic"])
 def test_without_lead_or_feedback_the_core_is_the_streaming_inverse(method):
     setpoints = slow_setpoints(500, 1.0)
-    core = Compensator(inverse_stream(method), kp=3.0, ki=5.0)
+    core = Compensator(MODEL, LIMIT_A, method, kp=3.0, ki=5.0)
     reference = inverse_stream(method).run(setpoints)[0]
     commands = [core.command(setpoint, None, 1.0) for setpoint in setpoints]
     assert np.array_equal(commands, reference)
 
 
 def test_anti_windup_stops_the_integral_while_the_command_saturates():
-    core = Compensator(inverse_stream(limit_a=2.0), ki=20.0)
+    core = Compensator(MODEL, 2.0, ki=20.0)
     commands = [core.command(1e-4, 0.0, 0.01) for _ in range(400)]
     assert commands[-1] == 2.0 and core.saturated == 1
     wound = core.integral_m
@@ -78,7 +89,7 @@ def test_anti_windup_stops_the_integral_while_the_command_saturates():
 
 
 def test_anti_windup_also_holds_when_the_lead_saturates():
-    core = Compensator(inverse_stream(), lag_tau_s=50.0, ki=1.0)
+    core = Compensator(lagged(50.0), LIMIT_A, ki=1.0)
     core.command(0.0, 0.0, 0.1)
     assert core.command(3e-4, 0.0, 0.1) == LIMIT_A and core.saturated == 1
     wound = core.integral_m
@@ -89,7 +100,7 @@ def test_anti_windup_also_holds_when_the_lead_saturates():
 def test_pi_removes_a_constant_offset_of_the_plant():
     offset_m, dt_s = 3e-5, 0.1
     plant = GPIForwardStream(MODEL.parameters, MODEL.operators)
-    core = Compensator(inverse_stream(), kp=0.5, ki=2.0)
+    core = Compensator(MODEL, LIMIT_A, kp=0.5, ki=2.0)
     position = plant.step(0.0) + offset_m
     for _ in range(600):
         position = plant.step(core.command(1e-4, position, dt_s)) + offset_m
@@ -101,14 +112,46 @@ def test_pi_removes_a_constant_offset_of_the_plant():
     (lambda core: core.command(float("nan")), "setpoint_m"),
     (lambda core: core.command(1e-4, float("inf"), 0.1), "measured_m"),
     (lambda core: core.command(1e-4, None, -0.1), "dt_s"),
-    (lambda core: setattr(core, "lag_tau_s", -1.0), "lag_tau_s"),
     (lambda core: setattr(core, "ki", float("nan")), "ki"),
-    (lambda core: Compensator(inverse_stream(), lag_tau_s=-2.0), "lag_tau_s"),
-    (lambda core: Compensator(inverse_stream(), heating_reference_a=-5.0), "heating_reference_a"),
-    (lambda core: Compensator("not an inverse"), "inverse"),
+    (lambda core: Compensator(MODEL, LIMIT_A, kp=-2.0), "kp"),
+    (lambda core: Compensator(MODEL, -1.0), "max_current_a"),
+    (lambda core: Compensator("not a model"), "IdentifiedModel"),
+    (lambda core: core.set_model(IdentifiedModel(MODEL.parameters.replace(output_unit="mm"), MODEL.operators)),
+     "output unit"),
+    (lambda core: Effect("thermal_lag", {"tau_s": -2.0}), "tau_s"),
 ])
 def test_bad_input_is_refused_with_one_line(call, name):
-    core = Compensator(inverse_stream())
+    core = Compensator(MODEL, LIMIT_A)
     with pytest.raises(InputError) as excinfo:
         call(core)
     assert name in str(excinfo.value) and "\n" not in str(excinfo.value)
+
+
+def test_a_refused_model_leaves_the_model_in_force():
+    core = Compensator(MODEL, LIMIT_A)
+    with pytest.raises(InputError):
+        core.set_model(IdentifiedModel(MODEL.parameters.replace(a10=-1.0), MODEL.operators))
+    assert core.model is MODEL
+
+
+def test_the_drift_is_taken_off_the_target_as_the_model_runs_on():
+    drift = Effect("drift", {"drift_m_per_s": 2e-7})
+    plain, drifting = Compensator(MODEL, LIMIT_A), Compensator(with_effects(drift), LIMIT_A)
+    reference = inverse_stream()
+    for step in range(1, 301):
+        command = drifting.command(1e-4, None, 1.0)
+        plain.command(1e-4 - 2e-7 * step, None, 1.0)
+        assert command == plain.command_a == reference.step(1e-4 - 2e-7 * step)
+
+
+def test_the_model_runs_on_from_the_state_it_carries():
+    """Given the model with the state a record left, the compensator starts where the stage is: its inverse
+    holds the record's operator states and its lead the lag's state (a model without one starts at rest)."""
+    t = np.arange(0.0, 300.0, 1.0)
+    model = lagged(6.0)
+    _, state = model.run(t, 4.0 * np.sin(2.0 * np.pi * t / 250.0))
+    carried = Compensator(replace(model, state=state), LIMIT_A)
+    assert carried.lag_state_a == state.effects[0].values[0] != 0.0
+    assert np.array_equal(carried.inverse.states, np.array(state.operators)) and np.any(carried.inverse.states)
+    fresh = Compensator(model, LIMIT_A)
+    assert fresh.lag_state_a == 0.0 and not np.any(fresh.inverse.states)

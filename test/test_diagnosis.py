@@ -11,19 +11,13 @@ from synthetic import TRUE_OPERATORS, TRUE_PARAMETERS, make_case
 
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import diagnose
-from sma_stage.identify.effects import (
-    EFFECT_NAMES,
-    delayed_input,
-    input_rate,
-    lagged_input,
-    rate_forward,
-    rate_model_output,
-)
+from sma_stage.identify.effects import EFFECT_NAMES, delayed_input, lagged_input, rate_model_output
 from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.identify.residual_tests import TEST_NAMES, residual_tests
 from sma_stage.io import read_csv
 from sma_stage.model import forward
+from sma_stage.model.effects import input_rate, rate_forward
 
 FLOOR_FACTOR = 1.5
 SEED = 7
@@ -210,9 +204,9 @@ def test_rate_model_without_rate_gain_is_the_gpi():
     t = np.arange(0.0, 500.0, 1.0)
     u = 4.0 * np.sin(2.0 * np.pi * t / 250.0)
     plain = forward(u, TRUE_PARAMETERS, TRUE_OPERATORS)
-    assert np.allclose(rate_forward(u, input_rate(t, u), TRUE_PARAMETERS, TRUE_OPERATORS, 0.0), plain,
-                       rtol=0, atol=1e-12)
-    wider = rate_forward(u, input_rate(t, u), TRUE_PARAMETERS, TRUE_OPERATORS, 5.0)
+    theta = TRUE_PARAMETERS.as_array()
+    assert np.allclose(rate_forward(u, input_rate(t, u), theta, TRUE_OPERATORS, 0.0)[0], plain, rtol=0, atol=1e-12)
+    wider = rate_forward(u, input_rate(t, u), theta, TRUE_OPERATORS, 5.0)[0]
     rising = np.gradient(u) > 0
     assert np.mean(wider[rising] - plain[rising]) < 0 < np.mean(wider[~rising] - plain[~rising])
 

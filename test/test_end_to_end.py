@@ -17,8 +17,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
-from sma_stage.identify.report import kept_model  # noqa: E402
-from sma_stage.model import PARAMETER_NAMES, GPIInverseStream, GPIParameters, load_model_file  # noqa: E402
+from sma_stage.model import IdentifiedModel, load_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, find_executable, wait_for  # noqa: E402
 
@@ -83,22 +82,17 @@ def test_executables_excite_refit_push_and_track(tmp_path):
             report = refit_after_excitation(client, nodes.check_running)
             assert report["compensator"]["pushed"], report["compensator"]["message"]
             assert report["samples"]["identification"] + report["samples"]["validation"] >= 60, "min_samples"
-            kept = kept_model(report)
             assert report["diagnosis"]["effect"] in ("none", "thermal_lag", "delay", "rate", "drift")
-            fitted = GPIParameters.from_dict(kept["parameters"])
-            names = [*PARAMETER_NAMES, "operators", "lag_tau_s", "heating_reference_a"]
-            held = client.get_parameters("compensator", names)
-            assert held == {**kept["parameters"], "operators": kept["operators"], "lag_tau_s": kept["lag_tau_s"],
-                            "heating_reference_a": kept["heating_reference_a"]}, "the compensator holds the fit"
-            assert load_model_file(model_file).parameters == fitted
+            deployed = load_model_file(model_file)
+            assert deployed.without_state().to_dict() == report["identified_model"]
+            held = IdentifiedModel.from_yaml_text(client.get_parameters("compensator", ["model"])["model"])
+            assert held == deployed, "the compensator holds the model written"
 
             stroke = (min(seen.positions), max(seen.positions))
             assert stroke[1] - stroke[0] > 2e-4, f"the excitation moved the stage: {stroke}"
             start = float(np.mean(seen.positions[-10:]))
             target = start + (0.3 if start < np.mean(stroke) else -0.3) * (stroke[1] - stroke[0])
-            client.set_parameters("compensator", {"lag_tau_s": 0.0})  # the inverse alone, no lead
-            inverse = GPIInverseStream(fitted, kept["operators"], "exact", input_range=(-5.0, 5.0))
-            expected = Compensator(inverse, heating_reference_a=kept["heating_reference_a"]).command(target)
+            expected = Compensator(deployed, 5.0).command(target)
             setpoint = client.node.create_publisher(Float64, "setpoint", COMMAND_QOS)
             wait_for(lambda: client.node.count_subscribers("setpoint") >= 1, 10.0, "the compensator")
             commands_before = len(seen.commands)

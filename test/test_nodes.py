@@ -29,11 +29,12 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from sma_stage.cli import main as cli_main  # noqa: E402
 from sma_stage.errors import InputError  # noqa: E402
 from sma_stage.io import read_bag, read_csv  # noqa: E402
-from sma_stage.model import GPIInverseStream, GPIParameters, load_model_file  # noqa: E402
+from sma_stage.model import Effect, GPIInverseStream, GPIParameters, IdentifiedModel, load_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
-from sma_stage.nodes.compensator_node import DEFAULT_MODEL, CompensatorNode  # noqa: E402
+from sma_stage.nodes.compensator_node import DEFAULT_MODEL_FILE, CompensatorNode  # noqa: E402
 from sma_stage.nodes.identification_node import IdentificationNode  # noqa: E402
 from sma_stage.nodes.stage_node import StageNode  # noqa: E402
 
@@ -284,7 +285,7 @@ def test_stage_executable_reads_the_config_file_and_stops_on_sigterm():
 
 # --- compensator ---------------------------------------------------------------------------------
 
-DEFAULT_PARAMS = GPIParameters.from_dict(DEFAULT_MODEL)
+DEFAULT_PARAMS = load_model_file(DEFAULT_MODEL_FILE).parameters
 SETPOINTS_M = [0.0, 1e-4, 2.5e-4, 1.5e-4, -1e-4, -3e-4, 5e-5, 3e-4]
 
 
@@ -330,15 +331,23 @@ def test_compensator_commands_equal_the_streaming_inverse(ros, method):
     assert all(abs(current) <= 5.0 for current in expected)
 
 
-def test_compensator_refuses_a_bad_model_parameter_and_keeps_the_model(ros):
+def model_text(params: GPIParameters, operators: int = 10, *effects: Effect) -> str:
+    return IdentifiedModel(params, operators, effects).to_yaml_text()
+
+
+def test_compensator_refuses_a_bad_model_and_keeps_the_model(ros):
     compensator = compensator_node(ros, rate_hz=2.0)
-    result = compensator.set_parameters([Parameter("a9", value=-1e-5)])[0]
-    assert not result.successful and "a9" in result.reason and "\n" not in result.reason
-    result = compensator.set_parameters_atomically([Parameter("a10", value=-0.2)])
-    assert not result.successful and "invertible" in result.reason
+    bad_models = [("kind: gpi\nparameters: [1, 2\n", "not valid YAML"),
+                  (model_text(DEFAULT_PARAMS).replace("operators:", "operator:"), "unknown key 'operator'"),
+                  (model_text(DEFAULT_PARAMS.replace(a10=-0.2)), "invertible"),
+                  (model_text(DEFAULT_PARAMS, 10, Effect("thermal_lag", {"tau_s": 5.0})).replace("tau_s", "tau"),
+                   "unknown parameter 'tau'")]
+    for text, reason in bad_models:
+        result = compensator.set_parameters_atomically([Parameter("model", value=text)])
+        assert not result.successful and reason in result.reason and "\n" not in result.reason, result.reason
     result = compensator.set_parameters([Parameter("inverse_method", value="newton")])[0]
     assert not result.successful and "inverse method" in result.reason
-    assert compensator.get_parameter("a9").value == DEFAULT_MODEL["a9"]
+    assert compensator.get_parameter("model").value == ""
     assert compensator.inverse.params == DEFAULT_PARAMS
     probe = CompensatorProbe(ros, compensator)
     reference = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-5.0, 5.0))
@@ -349,9 +358,7 @@ def test_compensator_takes_a_whole_model_through_its_parameter_service(ros):
     compensator = compensator_node(ros, rate_hz=2.0)
     probe = CompensatorProbe(ros, compensator)
     new = DEFAULT_PARAMS.replace(a1=0.0004, a5=0.0004, a9=4e-5, a10=0.3)
-    request = SetParametersAtomically.Request(parameters=[
-        *[Parameter(name, value=value).to_parameter_msg() for name, value in new.to_dict().items()],
-        Parameter("operators", value=8).to_parameter_msg()])
+    request = SetParametersAtomically.Request(parameters=[Parameter("model", value=model_text(new, 8)).to_parameter_msg()])
     answer = ros.call(probe.node, SetParametersAtomically, "compensator/set_parameters_atomically", request)
     assert answer.result.successful, answer.result.reason
     assert compensator.inverse.params == new and compensator.inverse.operators == 8
@@ -365,8 +372,7 @@ def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
     first = DEFAULT_PARAMS.replace(a10=0.25)
     first.to_yaml(path, operators=12)
     compensator = compensator_node(ros, model_file=str(path), rate_hz=2.0)
-    assert compensator.inverse.params == first and compensator.get_parameter("operators").value == 12
-    assert compensator.get_parameter("a10").value == 0.25
+    assert compensator.inverse.params == first and compensator.model.operators == 12
     probe = CompensatorProbe(ros, compensator)
     for bad_text in ("kind: gpi\nparameters: [1, 2\n", "kind: gpi\noperators: 10\nparameters: {a1: 1.0}\n"):
         path.write_text(bad_text)
@@ -377,15 +383,16 @@ def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
     second.to_yaml(path, operators=10)
     answer = ros.call(probe.node, Trigger, "compensator/reload")
     assert answer.success, answer.message
-    assert compensator.inverse.params == second and compensator.get_parameter("a2").value == 0.7
+    assert compensator.inverse.params == second
     reference = GPIInverseStream(second, 10, "exact", input_range=(-5.0, 5.0))
     probe.command_for(1e-4, reference.step(1e-4))
 
 
-def test_compensator_takes_the_lag_lead_while_running_and_refuses_a_negative_one(ros):
-    compensator = compensator_node(ros, rate_hz=2.0)
+def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gains(ros):
+    compensator = compensator_node(ros, rate_hz=2.0, kp=1.0, ki=0.1)
     assert compensator.core.lag_tau_s == 0.0
-    assert compensator.set_parameters([Parameter("lag_tau_s", value=11.0)])[0].successful
+    lag = Effect("thermal_lag", {"tau_s": 11.0})
+    assert compensator.set_parameters([Parameter("model", value=model_text(DEFAULT_PARAMS, 10, lag))])[0].successful
     assert compensator.core.lag_tau_s == 11.0 and compensator.inverse.params == DEFAULT_PARAMS
     probe = CompensatorProbe(ros, compensator)
     plain = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-5.0, 5.0)).step(2e-4)
@@ -394,7 +401,7 @@ def test_compensator_takes_the_lag_lead_while_running_and_refuses_a_negative_one
                "the lead to push the current beyond the inverse's output")
     wait_until(lambda: abs(probe.latest() - plain) < 0.05, 30.0,
                f"the lead's current to settle on the inverse's output (latest {probe.latest()!r})")
-    for name, bad in (("lag_tau_s", -1.0), ("kp", math.nan), ("ki", math.inf)):
+    for name, bad in (("kp", math.nan), ("ki", math.inf)):
         result = compensator.set_parameters([Parameter(name, value=bad)])[0]
         assert not result.successful and "\n" not in result.reason
     assert (compensator.core.lag_tau_s, compensator.core.kp, compensator.core.ki) == (11.0, 1.0, 0.1)
@@ -442,9 +449,9 @@ def test_config_files_hold_valid_parameters_of_their_node(ros, name, node_type):
     assert {p.name for p in overrides} >= set(node._parameters) - {"use_sim_time", "start_type_description_service"}, "every parameter documented"
 
 
-def test_compensator_default_model_is_the_default_model_file():
-    model = load_model_file(REPO / "config" / "model_default.yaml")
-    assert model.parameters == DEFAULT_PARAMS and model.operators == 10
+def test_compensator_default_model_is_the_default_model_file(ros):
+    compensator = compensator_node(ros)
+    assert compensator.model == load_model_file(REPO / "config" / "model_default.yaml")
 
 
 # --- identification ------------------------------------------------------------------------------
@@ -488,10 +495,8 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     assert report["validation"]["samples"] == report["samples"]["validation"] > 10
     assert report["identification"]["rms_pct"] < 25.0
     assert report["compensator"]["pushed"], report["compensator"]["message"]
-    fitted = GPIParameters.from_dict(report["model"]["parameters"])
-    assert compensator.inverse.params == fitted
-    assert compensator.inverse.operators == report["model"]["operators"]
-    assert load_model_file(model_file).parameters == fitted
+    deployed = load_model_file(model_file)
+    assert compensator.model == deployed and deployed.without_state().to_dict() == report["identified_model"]
     wait_until(lambda: reports.messages, 5.0, "the report on ~/report")
     assert json.loads(reports.messages[-1].data) == report
     recorded = identification.snapshot()
@@ -584,11 +589,15 @@ def test_identification_refit_survives_a_candidate_that_cannot_be_fitted(ros, tm
     candidates = {entry["effect"] for entry in report["diagnosis"]["candidates"]}
     assert candidates == {"thermal_lag", "delay", "rate", "drift"}, "every candidate reported, fitted or not"
     assert report["compensator"]["pushed"], report["compensator"]["message"]
-    assert load_model_file(model_file).parameters == compensator.inverse.params
+    assert load_model_file(model_file) == compensator.model
+    out = tmp_path / "cli"
+    assert cli_main(["diagnose", str(DRIFT_UNFITTABLE), "--holdout", "0.25", "--operators", "5", "--rounds", "1",
+                     "--out", str(out), "--json"]) == 0
+    assert load_model_file(out / "model.yaml") == load_model_file(model_file), "gpi_tool and ~/refit: one model"
 
 
 def test_identification_refit_keeps_the_plain_fit_when_the_diagnosis_fails(ros, tmp_path, monkeypatch):
-    import sma_stage.nodes.identification_node as module
+    import sma_stage.identify.pipeline as module
 
     def broken_diagnosis(*args, **kwargs):
         raise RuntimeError("a bug\nover two lines")
@@ -607,7 +616,8 @@ def test_identification_refit_keeps_the_plain_fit_when_the_diagnosis_fails(ros, 
     assert "diagnosis" not in report
     assert report["warnings"] == ["diagnosis failed, the plain GPI fit is kept: RuntimeError: a bug over two lines"]
     fitted = GPIParameters.from_dict(report["model"]["parameters"])
-    assert compensator.inverse.params == fitted and load_model_file(model_file).parameters == fitted
+    assert report["identified_model"]["effects"] == [] and compensator.model == load_model_file(model_file)
+    assert compensator.inverse.params == fitted
 
 
 def test_identification_refit_without_a_compensator_warns_in_the_report(ros, tmp_path):
@@ -622,7 +632,7 @@ def test_identification_refit_without_a_compensator_warns_in_the_report(ros, tmp
     report = json.loads(answer.message)
     assert not report["compensator"]["pushed"]
     assert any("no_such_compensator" in warning for warning in report["warnings"])
-    assert report["model_file"] is None and report["model"]["operators"] == 5
+    assert report["model_file"] is None and report["identified_model"]["operators"] == 5
 
 
 def test_identification_excite_runs_once_at_a_time_and_drives_current_cmd(ros):
@@ -646,13 +656,13 @@ def test_identification_keeps_serving_during_a_refit(ros, monkeypatch):
     import sma_stage.nodes.identification_node as module
 
     release = threading.Event()
-    real_fit = module.fit_recording
+    real_fit = module.identify_recording
 
     def held_fit(*args, **kwargs):
         assert release.wait(20.0)
         return real_fit(*args, **kwargs)
 
-    monkeypatch.setattr(module, "fit_recording", held_fit)
+    monkeypatch.setattr(module, "identify_recording", held_fit)
     identification = identification_node(ros, min_samples=50, push_timeout=0.1, operators=5)
     fake = FakeStage(ros, identification)
     fake.publish(4.0 * np.sin(np.linspace(0.0, 4.0 * np.pi, 100)))

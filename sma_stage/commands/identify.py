@@ -7,12 +7,9 @@ import sys
 from pathlib import Path
 
 from sma_stage.errors import InputError
-from sma_stage.identify.diagnosis import diagnose
-from sma_stage.identify.fit import FitResult, fit_gpi, predict
-from sma_stage.identify.metrics import error_metrics
+from sma_stage.identify.fit import predict
+from sma_stage.identify.pipeline import Identification, identify_recording
 from sma_stage.identify.report import (
-    diagnosis_report,
-    fit_report,
     markdown_summary,
     write_diagnosis_figures,
     write_fit_figures,
@@ -50,37 +47,38 @@ def progress_line(text: str) -> None:
 
 def run_fit(args: argparse.Namespace) -> dict:
     """Fit the GPI; validate on --validate data when given; write model.yaml, report.json/.md, fit.png."""
-    ident = read_data(args.data, args)
+    data = read_data(args.data, args)
     valid = read_data(args.validate, args) if args.validate else None
-    fit = fit_gpi(ident.input, ident.output, operators=args.operators, output_unit=args.unit,
-                  progress=progress_line)
-    valid_predicted = predict(fit, valid.input) if valid else None
-    validation = error_metrics(valid.output, valid_predicted) if valid else None
-    report = fit_report(fit, validation, valid.source if valid else "none (no --validate data)")
-    write_outputs(args, report, "GPI fit", fit)
-    write_fit_figures(args.out / "fit.png", ident, fit, valid, valid_predicted)
-    return report
+    found = identify_recording(data, valid, args.holdout, operators=args.operators, output_unit=args.unit,
+                               progress=progress_line, source=str(args.data))
+    write_outputs(args, found, "GPI fit")
+    ident = data.split(1.0 - args.holdout)[0] if args.holdout else data
+    valid_predicted = predict(found.fit, found.validation.input) if found.validation else None
+    write_fit_figures(args.out / "fit.png", ident, found.fit, found.validation, valid_predicted)
+    return found.report
 
 
 def run_diagnose(args: argparse.Namespace) -> dict:
-    """Fit, test the validation residual, add the effect the model lacks, report before and after."""
-    ident = read_data(args.data, args)
-    valid = read_data(args.validate, args)
-    diagnosis = diagnose((ident.t, ident.input, ident.output), (valid.t, valid.input, valid.output),
-                         operators=args.operators, progress=progress_line, output_unit=args.unit)
-    report = diagnosis_report(diagnosis, valid.source)
-    write_outputs(args, report, "GPI fit and residual diagnosis", diagnosis.base)
-    write_diagnosis_figures(args.out, valid, diagnosis, diagnosis.base.parameters.output_unit)
-    return report
+    """Fit, test the validation residual, add the effects the model lacks, report before and after; the
+    model written is the GPI with those effects."""
+    data = read_data(args.data, args)
+    valid = read_data(args.validate, args) if args.validate else None
+    found = identify_recording(data, valid, args.holdout, operators=args.operators, diagnose_rounds=args.rounds,
+                               output_unit=args.unit, progress=progress_line, source=str(args.data))
+    if found.diagnosis is None:
+        raise InputError(found.warnings[0] if found.warnings else "the diagnosis did not run")
+    write_outputs(args, found, "GPI fit and residual diagnosis")
+    write_diagnosis_figures(args.out, found.validation, found.diagnosis, found.fit.parameters.output_unit)
+    return found.report
 
 
-def write_outputs(args: argparse.Namespace, report: dict, title: str, fit: FitResult) -> None:
-    """model.yaml, report.json and report.md under --out; the summary also to stderr unless --json."""
+def write_outputs(args: argparse.Namespace, found: Identification, title: str) -> None:
+    """model.yaml (the identified model), report.json and report.md under --out; the summary also to
+    stderr unless --json."""
     args.out.mkdir(parents=True, exist_ok=True)
-    metadata = {"source": str(args.data), "identification_rms_pct": fit.identification.rms_pct}
-    fit.parameters.to_yaml(args.out / "model.yaml", fit.operators, metadata=metadata)
-    write_json(args.out / "report.json", report)
-    summary = markdown_summary(report, title)
+    found.model.save(args.out / "model.yaml")
+    write_json(args.out / "report.json", found.report)
+    summary = markdown_summary(found.report, title)
     atomic_write_text(args.out / "report.md", summary)
     if not args.json:
         print(summary)

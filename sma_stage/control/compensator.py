@@ -1,30 +1,43 @@
-"""The compensator's control law (no ROS): the inverse GPI model, an optional thermal-lag lead, a PI loop.
+"""The compensator's control law (no ROS): the identified model run backwards, one sample at a time, and a
+PI loop around it.
 
-Per call, with e = setpoint - measured position [m] when a measurement is given (feedback):
+Per call, dt seconds after the previous one, with e = setpoint - measured position [m] when a
+measurement is given (feedback):
 
     integral += ki e dt, except while the command saturates in the direction of e (anti-windup)
     target    = setpoint + kp e + integral                      (target = setpoint without feedback)
-    v*        = GPI inverse(target)                             within the inverse's input range [A]
-    current   = the lead: v* + tau dv*/dt in the limit of short steps, clipped to the input range
-                (tau = 0: current = v*)
+    v*        = GPI inverse(target - drift offset now)          within the current limit [A]
+    current   = the lead: the drive that brings the thermal lag's state to v* over one step (drive = v*
+                without a lag), clipped to the current limit
 
-The lead inverts the thermal lag tau v' = u - v that `identify.effects` fits (the GPI sees v, not the
-current u). It keeps the lag's state v, advanced exactly over each step with the command actually sent
-(held constant, as the stage holds it), and sends the current that brings v to v* at the end of a step
-as long as the last positive dt_s: u = (v* - a v) / (1 - a), a = exp(-dt / tau). Unclipped and with v
-on v*'s previous value this is v* + a / (1 - a) (v* - v*_previous) ~ v* + tau dv*/dt; when the clip
-stops the current short, v lags v* and the lead keeps pushing on the following steps. The state starts
-at 0 A (an idle stage, as the identification assumes). With heating_reference_a > 0 the lag filters the
-Joule heating u |u| / heating_reference_a instead of u (the wires heat as i^2 R) and the lead works in
-those units.
+Each effect of the IdentifiedModel is stepped with the code identification fitted it with
+(sma_stage.model.effects):
+- thermal_lag: its state is advanced with the command sent, held over each step (`lag_step` with equal
+  ends: exact for a held current), and the lead sends the held drive that brings it to v* over one step
+  (`lag_drive_for`, that step solved for its drive); in the heating reading the lead works in heating
+  units and sends the current whose Joule heating it wants.
+- drift: its offset follows the model's time (from where the model's state left it, else 0) and is
+  taken off the target.
+- rate: compensated quasi-statically: the inverse of the rate model's GPI at zero input rate (the
+  thresholds' stretch with the rate is left uncompensated).
+- delay: a dead time cannot be led causally: left uncompensated in feedforward (the position follows the
+  setpoint delay_s late); the PI loop sees it in the measurement.
+The model's state at the end of the identification record, when it carries one, is where the inverse,
+the lag and the drift start.
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from sma_stage.errors import InputError, finite_number
-from sma_stage.model import GPIInverseStream
+from sma_stage.model import GPIInverseStream, IdentifiedModel
+from sma_stage.model.effects import current_for_heating, joule_heating, lag_drive_for, lag_step
+
+UNCOMPENSATED = {"delay": "a dead time cannot be led causally: the position follows the setpoint delay_s late",
+                 "rate": "compensated at zero input rate (the quasi-static inverse)"}
 
 
 def _non_negative(name: str, value: float) -> float:
@@ -34,14 +47,12 @@ def _non_negative(name: str, value: float) -> float:
     return number
 
 
-GAIN_PARAMETERS = ("lag_tau_s", "heating_reference_a", "kp", "ki")
+GAIN_PARAMETERS = ("kp", "ki")
 
 
-def checked_gains(lag_tau_s: float, heating_reference_a: float, kp: float, ki: float) -> dict[str, float]:
-    """The lead's and the loop's settings (lag [s], heating reference [A], kp [m/m], ki [1/s]) as floats;
-    InputError unless each is finite and >= 0."""
-    values = {"lag_tau_s": lag_tau_s, "heating_reference_a": heating_reference_a, "kp": kp, "ki": ki}
-    return {name: _non_negative(name, value) for name, value in values.items()}
+def checked_gains(kp: float, ki: float) -> dict[str, float]:
+    """The loop's gains (kp [m/m], ki [1/s]) as floats; InputError unless each is finite and >= 0."""
+    return {name: _non_negative(name, value) for name, value in {"kp": kp, "ki": ki}.items()}
 
 
 class _NonNegative:
@@ -61,47 +72,77 @@ class _NonNegative:
 class Compensator:
     """Setpoint [m] (and measured position [m]) in, current [A] out; see the module's docstring.
 
-    inverse: the streaming GPI inverse (its input_range is the current limit [A]); lag_tau_s: the thermal
-    lag's time constant [s] (0: no lead); kp [m/m] and ki [1/s]: the PI gains (used only when a
-    measurement is given); heating_reference_a [A]: 0, the lag filters the current u; above 0, it
-    filters the Joule heating u |u| / heating_reference_a [A] (signed by the relay; the thermal_lag
-    effect's joule_reference_a), the model's input v is in those units, and the lead sends the current
-    whose heating it wants.
+    model: the identified model (output in m); max_current_a: the current limit [A]; method: the GPI
+    inverse, "exact" or "analytic"; kp [m/m] and ki [1/s]: the PI gains (used only when a measurement
+    is given).
     """
 
-    lag_tau_s = _NonNegative()  # time constant of the thermal lag the lead inverts [s]; 0: no lead
-    heating_reference_a = _NonNegative()  # [A] of the lagged heating u |u| / reference; 0: the current is lagged
     kp = _NonNegative()  # proportional gain [m of target per m of error]
     ki = _NonNegative()  # integral gain [1/s]
 
-    def __init__(self, inverse: GPIInverseStream, lag_tau_s: float = 0.0, kp: float = 0.0,
-                 ki: float = 0.0, heating_reference_a: float = 0.0) -> None:
-        self.heating_reference_a = heating_reference_a
-        self.lag_tau_s = lag_tau_s
+    def __init__(self, model: IdentifiedModel, max_current_a: float = 5.0, method: str = "exact",
+                 kp: float = 0.0, ki: float = 0.0) -> None:
         self.kp = kp
         self.ki = ki
         self.command_a = 0.0
-        self.set_inverse(inverse)
+        self.set_model(model, max_current_a, method)
+
+    @property
+    def model(self) -> IdentifiedModel:
+        """The identified model in force."""
+        return self._model
 
     @property
     def inverse(self) -> GPIInverseStream:
-        """The streaming GPI inverse in use."""
+        """The streaming GPI inverse in force."""
         return self._inverse
 
-    def set_inverse(self, inverse: GPIInverseStream) -> None:
-        """Use another inverse (a new model); the integral and the lead's history start again."""
-        if not isinstance(inverse, GPIInverseStream):
-            raise InputError(f"inverse must be a GPIInverseStream, got {type(inverse).__name__}")
-        self._inverse = inverse
+    @property
+    def max_current_a(self) -> float:
+        """The current limit [A]."""
+        return self._limit
+
+    def set_model(self, model: IdentifiedModel, max_current_a: float | None = None, method: str | None = None) -> None:
+        """Use another model (checked whole: InputError and nothing changed when it cannot be inverted);
+        the integral and every state start again, from the model's carried state when it has one."""
+        if not isinstance(model, IdentifiedModel):
+            raise InputError(f"model must be an IdentifiedModel, got {type(model).__name__}")
+        if model.output_unit != "m":
+            raise InputError(f"the model's output unit is '{model.output_unit}'; the setpoint is in m")
+        limit = _non_negative("max_current_a", self._limit if max_current_a is None else max_current_a)
+        if limit == 0.0:
+            raise InputError("max_current_a must be above 0")
+        lag = model.effect("thermal_lag")
+        reference = lag.parameters.get("joule_reference_a", 0.0) if lag is not None else 0.0
+        reach = (float(joule_heating(-limit, reference)), float(joule_heating(limit, reference)))
+        state = model.state
+        inverse = GPIInverseStream(model.parameters, model.operators, method or self._inverse.method,
+                                   initial=None if state is None else np.array(state.operators), input_range=reach)
+        self._model, self._inverse, self._limit = model, inverse, limit
+        self._lag, self._reference, self._reach = lag, reference, reach
+        self._drift = model.effect("drift")
         self.reset()
 
     def reset(self) -> None:
-        """Integral to 0, the lag's state to an idle stage (the inverse keeps its states)."""
+        """Integral to 0; the lag and the drift from the model's carried state (else an idle stage)."""
+        state = self._model.state
         self.integral_m = 0.0
         self.target_m = 0.0
         self.saturated = 0
-        self.lag_state_a = 0.0
+        self.lag_state_a = self._carried(self._lag, state, 0.0)
+        self.drift_elapsed_s = self._carried(self._drift, state, 0.0)
         self._hold_s = 0.0
+
+    def _carried(self, effect: object, state: object, default: float) -> float:
+        if effect is None or state is None:
+            return default
+        carried = state.effects[self._model.effects.index(effect)]
+        return float(carried.values[0]) if carried is not None and carried.values else default
+
+    @property
+    def lag_tau_s(self) -> float:
+        """The thermal lag's time constant [s] the lead undoes (0: none)."""
+        return self._lag.parameters["tau_s"] if self._lag is not None else 0.0
 
     def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0) -> float:
         """The current [A] for setpoint_m [m]; with measured_m [m] the PI loop acts, integrating the error
@@ -111,41 +152,33 @@ class Compensator:
         self.target_m = setpoint
         if measured_m is not None:
             self.target_m = self._pi_target(setpoint, finite_number("measured_m", measured_m), dt)
-        lag_input = self._inverse.step(self.target_m)
+        self.drift_elapsed_s += dt
+        lag_input = self._inverse.step(self.target_m - self._drift_offset())
         self.command_a = self._lead(lag_input, dt)
         return self.command_a
+
+    def _drift_offset(self) -> float:
+        if self._drift is None:
+            return 0.0
+        return float(self._drift.drift_at(self.drift_elapsed_s)[0])
 
     def _pi_target(self, setpoint: float, measured: float, dt: float) -> float:
         error = setpoint - measured
         if self.saturated * error <= 0.0:
             self.integral_m += self._ki * error * dt
-        return setpoint + self._kp * error + self.integral_m
+        target = setpoint + self._kp * error + self.integral_m
+        if not math.isfinite(target):
+            raise InputError(f"the loop's target is not finite (setpoint {setpoint!r}, measured {measured!r})")
+        return target
 
     def _lead(self, lag_input: float, dt: float) -> float:
+        tau = self.lag_tau_s
         if dt > 0.0:
             self._hold_s = dt
-            self.lag_state_a = self._lagged(self.lag_state_a, self._heating(self.command_a), dt)
-        wanted = lag_input
-        if self._lag_tau_s > 0.0 and self._hold_s > 0.0:
-            kept = math.exp(-self._hold_s / self._lag_tau_s)
-            wanted = (lag_input - kept * self.lag_state_a) / (1.0 - kept)
-        low, high = (self._heating(limit) for limit in self._inverse.input_range)
+            held = float(joule_heating(self.command_a, self._reference))
+            self.lag_state_a = lag_step(self.lag_state_a, held, held, dt, tau)
+        wanted = lag_drive_for(self.lag_state_a, lag_input, self._hold_s, tau) if self._hold_s > 0.0 else lag_input
+        low, high = self._reach
         clipped = min(high, max(low, wanted))
         self.saturated = self._inverse.last_clipped or (wanted > clipped) - (wanted < clipped)
-        return self._current_for(clipped)
-
-    def _heating(self, current_a: float) -> float:
-        """What the lag filters [A]: the current, or u |u| / heating_reference_a."""
-        reference = self._heating_reference_a
-        return current_a * abs(current_a) / reference if reference > 0.0 else current_a
-
-    def _current_for(self, heating: float) -> float:
-        """The current [A] whose heating (see _heating) is `heating` [A]."""
-        reference = self._heating_reference_a
-        return math.copysign(math.sqrt(abs(heating) * reference), heating) if reference > 0.0 else heating
-
-    def _lagged(self, state_a: float, drive_a: float, dt: float) -> float:
-        """The lag's state [A] after its input drive_a [A] (see _heating) held for dt [s] from state_a."""
-        if self._lag_tau_s == 0.0:
-            return drive_a
-        return drive_a + (state_a - drive_a) * math.exp(-dt / self._lag_tau_s)
+        return current_for_heating(clipped, self._reference)

@@ -36,6 +36,7 @@ from sma_stage.identify.effects import (
 from sma_stage.identify.fit import FitResult, fit_gpi, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
+from sma_stage.model.identified import IdentifiedModel
 
 BIC_MARGIN = 10.0  # "very strong" evidence on the Kass-Raftery scale
 VALIDATION_MARGIN = 0.10  # the validation RMS must fall by at least 10 % in the first round
@@ -198,25 +199,28 @@ class Chain:
         earlier = sum(len(stage.parameters) for stage in self.stages[:-1])
         return information_criterion(self.last.cost, self.last.samples, self.last.parameter_count + earlier)
 
+    @property
+    def model(self) -> IdentifiedModel:
+        """The whole model: the last stage's GPI with every added effect, in the order found."""
+        last = self.last
+        effects = tuple(stage.spec for stage in self.stages[1:])
+        return IdentifiedModel(last.gpi_parameters, last.operators, effects)
+
     def data(self, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(input, output) as an effect added on top sees them: every stage's input transform applied in
         turn, every output offset taken off."""
-        v, offset = self._through(t, u, len(self.stages))
+        v, offset = u, np.zeros_like(t)
+        for stage in self.stages[1:]:
+            spec = stage.spec
+            if spec.role == "input":
+                v = spec.transform(t, v)[0]
+            elif spec.role == "output":
+                offset = offset + spec.offset(t)[0]
         return v, y - offset
 
     def predict(self, t: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Output [output unit] of the whole model for a record (t [s], u [A])."""
-        v, offset = self._through(t, u, len(self.stages) - 1)
-        return self.last.predict(t, v) + offset
-
-    def _through(self, t: np.ndarray, u: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-        offset = np.zeros_like(t)
-        for stage in self.stages[:count]:
-            if stage.input_transform is not None:
-                u = stage.input_transform(t, u)
-            if stage.output_offset is not None:
-                offset = offset + stage.output_offset(t)
-        return u, offset
+        """Output [output unit] of the whole model for a record (t [s], u [A]) from an idle stage."""
+        return self.model.predict(t, u)
 
     def then(self, stage: EffectFit) -> Chain:
         """This model with one more effect."""

@@ -1,7 +1,7 @@
 """Candidate effects the plain GPI lacks, each a model with the GPI inside, fitted from the base fit.
 
-- `thermal_lag`: the hysteresis sees v with tau v' = u - v (the wire temperature follows the current
-  through first-order dynamics; the signed current is filtered, so tau is the one extra parameter).
+- `thermal_lag`: the hysteresis sees the first-order lag v of the current (or of its Joule heating),
+  the current held between samples (sma_stage.model.effects).
 - `delay`: the hysteresis sees u(t - d) (dead time d, linear interpolation between samples).
 - `rate`: thresholds r_i(t) = a9 i (1 + c |du/dt|) (the weights keep their nominal p(a9 i)).
 - `drift`: y = GPI(u) + k (t - t0) [+ A (1 - exp(-(t - t0)/tau_c)) when the creep term earns its place].
@@ -10,7 +10,9 @@ Every effect has `fit(t, u, y, base)` (at the base fit's operator count) and `re
 (the operator count chosen again, by fit_gpi's rule, for the model with the effect). Time t is in s
 (or samples for quasi-static data), u in A, y in the output unit (m). Every record starts from an idle
 stage: the current switched on one sample period before the first sample (zero before; the filter
-state and the delay line at zero) and the operator states at zero, as in the model core.
+state and the delay line at zero) and the operator states at zero, as in the model core. The forward
+model of each effect is sma_stage.model.effects, the code the compensator runs too; each fit is an
+EffectFit whose `model` is the IdentifiedModel it found.
 """
 
 from __future__ import annotations
@@ -19,16 +21,17 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TypeVar
 
-import numba
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
 from sma_stage.errors import InputError
-from sma_stage.identify.fit import OPERATOR_CANDIDATES, OPERATOR_MARGIN, FitResult, fit_gpi, predict
+from sma_stage.identify.fit import OPERATOR_CANDIDATES, OPERATOR_MARGIN, FitResult, fit_gpi
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.model.effects import Effect, drift_regressors, rate_forward
+from sma_stage.model.identified import IdentifiedModel
 from sma_stage.model.parameters import GPIParameters
 
 EFFECT_NAMES: tuple[str, ...] = ("thermal_lag", "delay", "rate", "drift")
@@ -78,9 +81,8 @@ def lowest_cost(fits: Iterable[Fitted | None]) -> Fitted | None:
 @dataclass(frozen=True)
 class EffectFit:
     """A fitted candidate: its extra parameters (name -> value, units in the name), the GPI inside,
-    identification errors and the sum of squared residuals `cost` [output unit^2]. For a further
-    effect on top of it: the input transform and the output offset it adds to the GPI (None: none),
-    or composable False when it is neither (the rate effect changes the GPI itself)."""
+    identification errors and the sum of squared residuals `cost` [output unit^2]; "none" for the plain
+    GPI in the same form."""
 
     effect: str
     parameters: dict[str, float]
@@ -91,15 +93,27 @@ class EffectFit:
     samples: int
     parameter_count: int
     seconds: float
-    predictor: Predictor = field(repr=False, compare=False)
-    input_transform: Transform | None = field(default=None, repr=False, compare=False)
-    output_offset: Offset | None = field(default=None, repr=False, compare=False)
-    composable: bool = True
+
+    @property
+    def spec(self) -> Effect | None:
+        """The effect as the model carries it (None for the plain GPI)."""
+        return None if self.effect == "none" else Effect(self.effect, self.parameters)
+
+    @property
+    def model(self) -> IdentifiedModel:
+        """The GPI with this effect."""
+        spec = self.spec
+        return IdentifiedModel(self.gpi_parameters, self.operators, () if spec is None else (spec,))
+
+    @property
+    def composable(self) -> bool:
+        """Whether a further effect can be fitted on top: not after `rate` (it changes the GPI itself)."""
+        return self.spec is None or self.spec.role != "gpi"
 
     def predict(self, t: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Model output [output unit] for another record (time t [s], input u [A])."""
+        """Model output [output unit] for another record (time t [s], input u [A]) from an idle stage."""
         t, u = check_record(t, u)
-        return self.predictor(t, u)
+        return self.model.predict(t, u)
 
     @property
     def bic(self) -> float:
@@ -127,85 +141,29 @@ def check_record(t: np.ndarray, u: np.ndarray, y: np.ndarray | None = None) -> t
 # ---- transforms and the rate model --------------------------------------------------------------
 
 
-@numba.njit(cache=True, nogil=True)
-def _lag_recursion(t: np.ndarray, u: np.ndarray, tau: float, out: np.ndarray) -> None:
-    out[0] = 0.0
-    for k in range(1, t.size):
-        h = t[k] - t[k - 1]
-        slope = (u[k] - u[k - 1]) / h
-        out[k] = u[k] - slope * tau + (out[k - 1] - u[k - 1] + slope * tau) * math.exp(-h / tau)
-
-
-def idle_start(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(t, u) extended by the moment the record's current was switched on: one sample period before
-    the first sample, held at u[0] over that period (as a zero-order-hold source delivers it), zero
-    before."""
-    step = t[1] - t[0]
-    return np.concatenate(([t[0] - step], t)), np.concatenate(([u[0]], u))
-
-
-def lagged_input(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
-    """v with tau v' = u - v [A] from an idle stage (v = 0 when the current was switched on, see
-    idle_start), exact for u linear between samples."""
-    times, currents = idle_start(t, u)
-    out = np.empty_like(currents)
-    _lag_recursion(times, currents, float(tau_s), out)
-    return out[1:]
+def lagged_input(t: np.ndarray, u: np.ndarray, tau_s: float, joule_reference_a: float = 0.0) -> np.ndarray:
+    """The lag v [A] of the current (of its Joule heating u |u| / joule_reference_a when that is above 0)
+    from an idle stage: the thermal_lag effect's input transform."""
+    parameters = {"tau_s": tau_s, **({"joule_reference_a": joule_reference_a} if joule_reference_a > 0.0 else {})}
+    return Effect("thermal_lag", parameters).transform(t, u)[0]
 
 
 def delayed_input(t: np.ndarray, u: np.ndarray, delay_s: float) -> np.ndarray:
     """u(t - d) [A], linear between samples, from an idle stage (zero before the current was switched
-    on, see idle_start)."""
-    times, currents = idle_start(t, u)
-    return np.interp(t - delay_s, times, currents, left=0.0)
-
-
-def input_rate(t: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """|du/dt| [A/s] by second-order finite differences."""
-    return np.abs(np.gradient(u, t))
-
-
-def drift_regressors(t: np.ndarray, creep_tau_s: float | None) -> np.ndarray:
-    """Columns (t - t0) [s] and, with a creep time constant, 1 - exp(-(t - t0)/tau_c)."""
-    elapsed = t - t[0]
-    columns = [elapsed] if creep_tau_s is None else [elapsed, -np.expm1(-elapsed / creep_tau_s)]
-    return np.column_stack(columns)
-
-
-@numba.njit(cache=True, nogil=True)
-def _rate_output(u: np.ndarray, rate: np.ndarray, theta: np.ndarray, operators: int, gain: float,
-                 out: np.ndarray) -> None:
-    """GPI output with thresholds a9 i (1 + gain rate_k) and weights a10 exp(-a11 a9 i), states from 0."""
-    states = np.zeros(operators)
-    nominal = theta[8] * np.arange(operators)
-    weights = theta[9] * np.exp(-theta[10] * nominal)
-    for k in range(u.size):
-        low = theta[0] * math.tanh(theta[1] * u[k] + theta[2]) + theta[3]
-        high = theta[4] * math.tanh(theta[5] * u[k] + theta[6]) + theta[7]
-        stretch = 1.0 + gain * rate[k]
-        total = 0.0
-        for i in range(operators):
-            z = max(low - nominal[i] * stretch, min(high + nominal[i] * stretch, states[i]))
-            states[i] = z
-            total += weights[i] * z
-        out[k] = total
+    on): the delay effect's input transform."""
+    return Effect("delay", {"delay_s": delay_s}).transform(t, u)[0]
 
 
 def rate_model_output(t: np.ndarray, u: np.ndarray, params: GPIParameters, operators: int,
                       gain_s_per_A: float) -> np.ndarray:
-    """The rate model's output [output unit] for a record (t [s], u [A]) from an idle stage (see
-    idle_start: the operators start with the current switched on and still, at the nominal thresholds)."""
-    times, currents = idle_start(t, u)
-    return rate_forward(currents, input_rate(times, currents), params, operators, gain_s_per_A)[1:]
+    """The rate model's output [output unit] for a record (t [s], u [A]) from an idle stage."""
+    return IdentifiedModel(params, operators, (Effect("rate", {"rate_gain_s_per_A": gain_s_per_A}),)).predict(t, u)
 
 
-def rate_forward(u: np.ndarray, rate: np.ndarray, params: GPIParameters, operators: int,
-                 gain_s_per_A: float) -> np.ndarray:
-    """GPI output [output unit] with thresholds a9 i (1 + c |du/dt|); rate is |du/dt| [A/s], c in s/A."""
-    out = np.empty(u.size)
-    _rate_output(np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(rate, dtype=float),
-                 params.as_array(), int(operators), float(gain_s_per_A), out)
-    return out
+def _rate_record(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(u, |du/dt|) [A, A/s] with the idle-start sample ahead of the first, as the rate model runs them."""
+    currents, rates, _ = Effect("rate", {"rate_gain_s_per_A": 0.0}).rate_input(t, u)
+    return currents, rates
 
 
 # ---- fitting machinery ---------------------------------------------------------------------------
@@ -291,14 +249,12 @@ def _brent(cost: Callable[[float], float], left: float, right: float, tolerance:
 
 
 def _finish(effect: str, values: dict[str, float], gpi: GPIParameters, operators: int, y: np.ndarray,
-            predicted: np.ndarray, parameter_count: int, started: float, predictor: Predictor,
-            **composition: object) -> EffectFit:
+            predicted: np.ndarray, parameter_count: int, started: float) -> EffectFit:
     residual = y - predicted
     return EffectFit(
         effect=effect, parameters=values, gpi_parameters=gpi, operators=int(operators),
         identification=error_metrics(y, predicted), cost=float(residual @ residual), samples=int(y.size),
-        parameter_count=int(parameter_count), seconds=time.perf_counter() - started, predictor=predictor,
-        **composition,
+        parameter_count=int(parameter_count), seconds=time.perf_counter() - started,
     )
 
 
@@ -310,7 +266,7 @@ def _report(progress: Progress, message: str) -> None:
 # ---- the effects ---------------------------------------------------------------------------------
 
 
-class Effect:
+class Candidate:
     """A candidate effect: `fit` from the base GPI fit (its operator count), `recount` to choose the
     operator count again for the model with the effect."""
 
@@ -325,7 +281,7 @@ class Effect:
         raise NotImplementedError
 
 
-class InputTransformEffect(Effect):
+class InputTransformEffect(Candidate):
     """The GPI driven by a transformed input transform(t, u, x), x [s] found by a bounded search over
     log x with the GPI refitted at every x."""
 
@@ -366,8 +322,7 @@ class InputTransformEffect(Effect):
             raise NotFitted(f"{self.name}: the GPI cannot be fitted at {self.parameter} = {value:.4g}")
         _report(progress, f"{self.name}: {self.parameter} = {value:.4g}, {gpi.operators} operators")
         return _finish(self.name, {self.parameter: value}, gpi.parameters, gpi.operators, y, gpi.predicted,
-                       parameter_count, started, lambda tv, uv: predict(gpi, self.transform(tv, uv, value)),
-                       input_transform=lambda tv, uv: self.transform(tv, uv, value))
+                       parameter_count, started)
 
 
 def _thinned(samples: int) -> np.ndarray:
@@ -381,7 +336,7 @@ def _lag_range(t: np.ndarray) -> tuple[float, float]:
     return MIN_LAG_SAMPLES * step, max(LAG_RANGE_FRACTION * float(t[-1] - t[0]), step)
 
 
-class DriftEffect(Effect):
+class DriftEffect(Candidate):
     """GPI plus a linear drift k (t - t0) [m/s], solved linearly inside the fit; a creep term
     A (1 - exp(-(t - t0)/tau_c)) [m] joins when it lowers the BIC (tau_c searched with the GPI held)."""
 
@@ -396,7 +351,7 @@ class DriftEffect(Effect):
                 progress: Progress = None) -> EffectFit:
         """The count chosen by fit_gpi's rule with the linear drift; the creep decided again at it."""
         started = time.perf_counter()
-        counted = _fit_or_none(u, y, None, None, fit.gpi_parameters.output_unit, drift_regressors(t, None),
+        counted = _fit_or_none(u, y, None, None, fit.gpi_parameters.output_unit, drift_regressors(t - t[0], None),
                                THOROUGH_STARTS)
         if counted is None or counted.operators == fit.operators:
             return fit
@@ -409,11 +364,11 @@ class DriftEffect(Effect):
         """Linear drift, then linear drift and creep, at one operator count; the lower BIC is kept (the
         linear drift alone where the creep cannot be fitted)."""
         unit = start.output_unit
-        linear = self._refit(u, y, count, start, unit, drift_regressors(t, None))
+        linear = self._refit(u, y, count, start, unit, drift_regressors(t - t[0], None))
         if linear is None:
             raise NotFitted(f"drift: the GPI with a linear drift cannot be fitted at {count} operators")
         tau_c = _creep_time_constant(t, y, linear)
-        creep = self._refit(u, y, count, linear.parameters, unit, drift_regressors(t, tau_c))
+        creep = self._refit(u, y, count, linear.parameters, unit, drift_regressors(t - t[0], tau_c))
         samples, k = y.size, plain_count
         if creep is not None and (information_criterion(creep.cost, samples, k + 3)
                                   < information_criterion(linear.cost, samples, k + 1)):
@@ -436,17 +391,16 @@ class DriftEffect(Effect):
             values.update({"creep_m": float(coefficients[1]), "creep_tau_s": tau_c})
         _report(progress, "drift: " + ", ".join(f"{name} = {value:.4g}" for name, value in values.items()))
         return _finish(self.name, values, gpi.parameters, gpi.operators, y, gpi.predicted, parameter_count,
-                       started, lambda tv, uv: predict(gpi, uv, regressors=drift_regressors(tv, tau_c)),
-                       output_offset=lambda tv: drift_regressors(tv, tau_c) @ coefficients)
+                       started)
 
 
 def _creep_time_constant(t: np.ndarray, y: np.ndarray, linear: FitResult) -> float:
     """tau_c [s] that best explains what the linear-drift fit leaves, with its GPI output held."""
-    gpi_part = linear.predicted - drift_regressors(t, None) @ linear.regressor_coefficients
+    gpi_part = linear.predicted - drift_regressors(t - t[0], None) @ linear.regressor_coefficients
     duration = float(t[-1] - t[0])
 
     def cost(log_tau: float, thorough: bool) -> float:
-        basis = np.column_stack([gpi_part, np.ones_like(t), drift_regressors(t, math.exp(log_tau))])
+        basis = np.column_stack([gpi_part, np.ones_like(t), drift_regressors(t - t[0], math.exp(log_tau))])
         coefficients, *_ = np.linalg.lstsq(basis, y, rcond=None)
         residual = y - basis @ coefficients
         return float(residual @ residual)
@@ -463,7 +417,7 @@ class _RateFit:
     cost: float
 
 
-class RateEffect(Effect):
+class RateEffect(Candidate):
     """GPI with rate-dependent thresholds a9 i (1 + c |du/dt|): c [s/A] scanned with the GPI held, then
     a1..a11 and c refitted together (trust-region reflective, a10 solved linearly inside)."""
 
@@ -472,16 +426,16 @@ class RateEffect(Effect):
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
             progress: Progress = None) -> EffectFit:
         started = time.perf_counter()
-        times, currents = idle_start(t, u)
-        found = _rate_fit(currents, input_rate(times, currents), y, base.parameters, base.operators)
+        currents, rates = _rate_record(t, u)
+        found = _rate_fit(currents, rates, y, base.parameters, base.operators)
         return self._finish(found, t, u, y, base.parameter_count + 1, started, progress)
 
     def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
                 progress: Progress = None) -> EffectFit:
         """Refit from a plain GPI fit of every other candidate operator count; keep the rule's choice."""
         started = time.perf_counter()
-        times, currents = idle_start(t, u)
-        rate, unit = input_rate(times, currents), fit.gpi_parameters.output_unit
+        currents, rate = _rate_record(t, u)
+        unit = fit.gpi_parameters.output_unit
         fits: list = [fit]
         for count in OPERATOR_CANDIDATES:
             start = None if count == fit.operators else _fit_or_none(u, y, count, None, unit, None, THOROUGH_STARTS)
@@ -497,14 +451,13 @@ class RateEffect(Effect):
         params, operators, gain = found.params, found.operators, found.gain
         _report(progress, f"rate: rate_gain_s_per_A = {gain:.4g}, {operators} operators")
         return _finish(self.name, {"rate_gain_s_per_A": gain}, params, operators, y,
-                       rate_model_output(t, u, params, operators, gain), parameter_count, started,
-                       lambda tv, uv: rate_model_output(tv, uv, params, operators, gain), composable=False)
+                       rate_model_output(t, u, params, operators, gain), parameter_count, started)
 
 
 def _rate_fit(u: np.ndarray, rate: np.ndarray, y: np.ndarray, start_params: GPIParameters,
               operators: int) -> _RateFit:
     """The rate model fitted from a GPI start: a scan of c with the GPI held, then everything together.
-    u and rate [A, A/s] carry the idle-start sample ahead of y's first (see idle_start)."""
+    u and rate [A, A/s] carry the idle-start sample ahead of y's first (see _rate_record)."""
     scale = 1.0 / max(float(np.max(rate)), np.finfo(float).tiny)
     start = start_params.as_array()
     grid = [factor * scale for factor in RATE_GAIN_GRID]
@@ -535,22 +488,14 @@ def _rate_projection(values: np.ndarray, gain: float, u: np.ndarray, rate: np.nd
     u and rate have one sample more than y (the idle start), whose output is left out."""
     theta = values.copy()
     theta[9] = 1.0
-    output = np.empty(u.size)
-    _rate_output(u, rate, theta, operators, float(gain), output)
-    shape = output[1:]
+    shape = rate_forward(u, rate, theta, operators, gain)[0][1:]
     norm = float(shape @ shape)
     a10 = max(float(shape @ y) / norm, 0.0) if norm > 0.0 else 0.0
     residual = a10 * shape - y
     return a10, float(residual @ residual), residual / max(float(np.ptp(y)), np.finfo(float).tiny)
 
 
-def joule_heating(u: np.ndarray, reference_a: float) -> np.ndarray:
-    """The Joule heating in current units [A], u |u| / reference_a: signed by the relay (which wire it
-    heats), equal to u at +-reference_a."""
-    return u * np.abs(u) / reference_a
-
-
-class ThermalLagEffect(Effect):
+class ThermalLagEffect(Candidate):
     """The GPI driven by a first-order lag (tau [s]) of either the current or of the Joule heating
     u |u| / u_ref (u_ref [A]: the record's largest |u|), whichever fits the identification data better
     (the wires heat as i^2 R, so the second is the physical reading; the first is exact for a plant whose
@@ -580,7 +525,7 @@ class ThermalLagEffect(Effect):
     def _reading(self, reference_a: float | None) -> InputTransformEffect:
         if reference_a is None:
             return InputTransformEffect(self.name, "tau_s", lagged_input)
-        return _HeatingLag(self.name, "tau_s", lambda t, u, tau: lagged_input(t, joule_heating(u, reference_a), tau),
+        return _HeatingLag(self.name, "tau_s", lambda t, u, tau: lagged_input(t, u, tau, reference_a),
                            {self.PARAMETER: reference_a})
 
 
@@ -598,7 +543,7 @@ class _HeatingLag(InputTransformEffect):
         return dataclasses.replace(fit, parameters={**fit.parameters, **self.fixed})
 
 
-EFFECTS: dict[str, Effect] = {
+EFFECTS: dict[str, Candidate] = {
     "thermal_lag": ThermalLagEffect(),
     "delay": InputTransformEffect("delay", "delay_s", delayed_input),
     "rate": RateEffect(),
@@ -626,4 +571,4 @@ def no_effect(t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult) -> E
     """The plain GPI in the same form as the candidates (no extra parameter)."""
     t, u, y = check_record(t, u, y)
     return _finish("none", {}, base.parameters, base.operators, y, base.predicted, base.parameter_count,
-                   time.perf_counter(), lambda tv, uv: predict(base, uv))
+                   time.perf_counter())

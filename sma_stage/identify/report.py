@@ -32,20 +32,6 @@ def fit_report(fit: FitResult, validation: ErrorMetrics | None, validation_sourc
     }
 
 
-def diagnosis_report(diagnosis: Diagnosis, validation_source: str) -> dict:
-    """The whole JSON document: the base fit, its validation, and the diagnosis block."""
-    report = fit_report(diagnosis.base, diagnosis.before, validation_source)
-    report["diagnosis"] = diagnosis.to_dict()
-    return report
-
-
-def kept_model(report: dict) -> dict:
-    """The model a refit keeps (writes and pushes): its "lag_model" (the GPI fitted with the thermal lag,
-    when the diagnosis named it first), else its plain "model" with no lead (lag_tau_s and
-    heating_reference_a 0)."""
-    return report.get("lag_model") or {**report["model"], "lag_tau_s": 0.0, "heating_reference_a": 0.0}
-
-
 def write_json(path: Path, report: dict) -> None:
     """The report as indented JSON, atomically."""
     atomic_write_text(path, json.dumps(report, indent=2) + "\n")

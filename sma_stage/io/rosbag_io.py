@@ -97,14 +97,19 @@ def _check_type(topic: str, kinds: set[str], allowed: tuple[str, ...], source: s
         raise InputError(f"{source}: topic '{topic}' has type {', '.join(wrong)}, expected {' or '.join(allowed)}")
 
 
-def _joint_position(message: Any, joint_name: str) -> float | None:
+def joint_index(message: Any, joint_name: str) -> int | None:
+    """Index of joint_name's position in a JointState (the only position of one without names); None when
+    the message does not carry it. The one rule for bags and live topics alike."""
     names = list(message.name)
     if joint_name in names:
         index = names.index(joint_name)
-        return float(message.position[index]) if index < len(message.position) else None
-    if not names and len(message.position) == 1:
-        return float(message.position[0])
-    return None
+        return index if index < len(message.position) else None
+    return 0 if not names and len(message.position) == 1 else None
+
+
+def _joint_position(message: Any, joint_name: str) -> float | None:
+    index = joint_index(message, joint_name)
+    return None if index is None else float(message.position[index])
 
 
 def _stamp_ns(message: Any) -> int:

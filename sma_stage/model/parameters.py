@@ -5,13 +5,10 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
-import yaml
 
 from sma_stage.errors import InputError
-from sma_stage.io.atomic import atomic_write_text
 
 PARAMETER_NAMES: tuple[str, ...] = tuple(f"a{k}" for k in range(1, 12))
 MODEL_KIND = "gpi"
@@ -116,22 +113,17 @@ class GPIParameters:
 
     def to_yaml(self, path: str | os.PathLike, operators: int = DEFAULT_OPERATORS,
                 metadata: dict | None = None) -> None:
-        """Write a model file (atomically): kind, output unit, operator count, a1..a11, metadata."""
-        atomic_write_text(path, model_file_text(self, operators, metadata))
+        """Write a plain GPI model file (atomically): see sma_stage.model.identified."""
+        from sma_stage.model.identified import IdentifiedModel
+
+        IdentifiedModel(self, operators, metadata=metadata or {}).save(path)
 
     @classmethod
     def from_yaml(cls, path: str | os.PathLike) -> GPIParameters:
-        """Parameters from a model file written by to_yaml."""
+        """Parameters from a model file."""
+        from sma_stage.model.identified import load_model_file
+
         return load_model_file(path).parameters
-
-
-@dataclass(frozen=True)
-class ModelFile:
-    """What a model file holds: the parameters, the operator count and free-form metadata."""
-
-    parameters: GPIParameters
-    operators: int
-    metadata: dict
 
 
 def check_operators(operators: int) -> int:
@@ -141,51 +133,3 @@ def check_operators(operators: int) -> int:
     if not 1 <= operators <= MAX_OPERATORS:
         raise InputError(f"operator count must be between 1 and {MAX_OPERATORS}, got {operators}")
     return int(operators)
-
-
-def model_file_text(params: GPIParameters, operators: int, metadata: dict | None = None) -> str:
-    """The YAML text of a model file."""
-    document = {
-        "kind": MODEL_KIND,
-        "output_unit": params.output_unit,
-        "operators": check_operators(operators),
-        "parameters": params.to_dict(),
-    }
-    if metadata:
-        document["metadata"] = metadata
-    header = "# sma_stage GPI model: y = sum_i p(r_i) S_ri[v], input in A, output in output_unit\n"
-    return header + yaml.safe_dump(document, sort_keys=False)
-
-
-def load_model_file(path: str | os.PathLike) -> ModelFile:
-    """Read and validate a model file; any problem is one InputError line naming the file."""
-    path = Path(path)
-    try:
-        document = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"model file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(f"cannot read model file {path}: {error}") from None
-    except yaml.YAMLError as error:
-        first_line = str(error).splitlines()[0] if str(error) else "invalid YAML"
-        raise InputError(f"model file {path} is not valid YAML: {first_line}") from None
-    try:
-        return parse_model_document(document)
-    except InputError as error:
-        raise InputError(f"model file {path}: {error}") from None
-
-
-def parse_model_document(document: object) -> ModelFile:
-    """A ModelFile from an already parsed YAML document."""
-    if not isinstance(document, dict):
-        raise InputError("expected a mapping with kind, output_unit, operators and parameters")
-    kind = document.get("kind", MODEL_KIND)
-    if kind != MODEL_KIND:
-        raise InputError(f"model kind {kind!r} is not supported (expected {MODEL_KIND!r})")
-    params = GPIParameters.from_dict(document.get("parameters"), output_unit=document.get("output_unit", "m"))
-    operators = check_operators(document.get("operators", DEFAULT_OPERATORS))
-    metadata = document.get("metadata") or {}
-    if not isinstance(metadata, dict):
-        raise InputError("metadata must be a mapping")
-    return ModelFile(params, operators, metadata)
-

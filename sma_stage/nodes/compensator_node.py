@@ -1,19 +1,19 @@
-"""The `compensator` node: turns `setpoint` [m] into `current_cmd` [A] through the inverse GPI model,
-optionally with a PI loop on the measured position (`joint_states`) around it.
+"""The `compensator` node: turns `setpoint` [m] into `current_cmd` [A] through the inverse of the
+identified model (sma_stage.control.Compensator), optionally with a PI loop on the measured position
+(`joint_states`) around it.
 
-The model comes from `model_file` (a YAML file written by GPIParameters.to_yaml) or from the parameters
-a1..a11 and operators, which can be set while running: a new set is validated whole (GPIParameters and
-invertibility) and refused with the reason when bad. `~/reload` reads model_file again and keeps the old
-model when the file is bad.
+The model in force is the last one given: `model_file` (a model file from `gpi_tool fit/diagnose` or
+`~/refit`; read at start, when the parameter changes and on `~/reload`) or `model` (the whole model as
+the same YAML text, what `~/refit` pushes in one atomic change); with both empty, the shipped
+config/model_default.yaml. A new model is checked whole and refused whole (the old one stays in force).
 
-Control law (sma_stage.control.Compensator): target = setpoint + kp e + integral(ki e dt),
-e = setpoint - measured position [m] (feedback only; target = setpoint otherwise), v = inverse(target)
-within +-max_current, current = v + lag_tau_s dv/dt clipped to +-max_current (a lead that undoes the
-wires' thermal lag; lag_tau_s = 0: current = v). The integral and dv/dt run on the node clock (simulated
-time with use_sim_time); the integral stops while the command saturates in the direction of the error
-(anti-windup). A command is published on each setpoint and, once a setpoint came, every 1/rate_hz s
-(which also feeds the stage's watchdog): computed again in feedback mode or with the lead on, the last one
-repeated otherwise.
+Control law: target = setpoint + kp e + integral(ki e dt), e = setpoint - measured position [m]
+(feedback only; target = setpoint otherwise); the model's inverse gives the current, with the lead that
+undoes a thermal lag and the drift's offset taken off (see sma_stage.control.compensator). The integral
+and the lead run on the node clock (simulated time with use_sim_time); the integral stops while the
+command saturates in the direction of the error (anti-windup). A command is published on each setpoint
+and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog): computed again in
+feedback mode or with a lag or drift in the model, the last one repeated otherwise.
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from std_srvs.srv import Trigger
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import GAIN_PARAMETERS, checked_gains
 from sma_stage.errors import InputError
-from sma_stage.model import PARAMETER_NAMES, GPIInverseStream, GPIParameters, load_model_file
+from sma_stage.io.rosbag_io import joint_index
+from sma_stage.model import IdentifiedModel, load_model_file
 from sma_stage.model.inverse import METHODS
-from sma_stage.model.parameters import MAX_OPERATORS
 from sma_stage.nodes._common import (
     COMMAND_QOS,
     JOINT_NAME,
@@ -46,64 +46,52 @@ from sma_stage.nodes._common import (
     finite,
     run_node,
 )
+from sma_stage.nodes.launch import CONFIG_DIR
 
-# The hand-made starting model of config/model_default.yaml (a +-0.5 mm stage); replace it by a fit.
-DEFAULT_MODEL = {"a1": 0.0005, "a2": 0.6, "a3": 0.1, "a4": 0.0, "a5": 0.0005, "a6": 0.6, "a7": -0.2,
-                 "a8": 5.0e-05, "a9": 5.0e-05, "a10": 0.2, "a11": 5000.0}
-DEFAULT_OPERATORS = 10
-MODEL_PARAMETERS = (*PARAMETER_NAMES, "operators")
-REBUILD_PARAMETERS = (*MODEL_PARAMETERS, "inverse_method", "max_current")
-MODEL_LIMIT = 1e12
+DEFAULT_MODEL_FILE = CONFIG_DIR / "model_default.yaml"
+MODEL_SOURCES = ("model_file", "model")
+REBUILD_PARAMETERS = (*MODEL_SOURCES, "inverse_method", "max_current")
 
 COMPENSATOR_PARAMS = [
-    Param("model_file", "", "GPI model file (YAML from GPIParameters.to_yaml or ~/refit); empty: use a1..a11"),
-    *[Param(name, DEFAULT_MODEL[name], f"GPI parameter {name} (the model's eqs 4-5; output in m, input in A)",
-            -MODEL_LIMIT, MODEL_LIMIT) for name in PARAMETER_NAMES],
-    Param("operators", DEFAULT_OPERATORS, "number of play operators of the GPI model", 1, MAX_OPERATORS),
-    Param("inverse_method", "exact", f"inverse of the model: {' or '.join(METHODS)}"),
+    Param("model_file", "", "model file (YAML from gpi_tool fit/diagnose or ~/refit); empty: the shipped default "
+          "model unless `model` is set"),
+    Param("model", "", "the whole identified model as model-file YAML text (what ~/refit pushes); empty: none"),
+    Param("inverse_method", "exact", f"inverse of the model's GPI: {' or '.join(METHODS)}"),
     Param("max_current", 5.0, "current limit [A]: the inverse searches within +-max_current", 0.001, 20.0),
     Param("feedback", False, "close a PI loop on the measured position from joint_states"),
     Param("kp", 1.0, "proportional gain on the position error [m/m] (feedback mode)", 0.0, 100.0),
     Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (feedback mode)", 0.0, 10000.0),
-    Param("lag_tau_s", 0.0, "thermal lag time constant [s of node-clock time] the lead undoes; 0: no lead",
-          0.0, 1000.0),
-    Param("heating_reference_a", 0.0, "0: the lag acts on the current; > 0: on the Joule heating u|u|/this [A] "
-          "(thermal_lag's joule_reference_a)", 0.0, 100.0),
     Param("rate_hz", 50.0, "command republication and PI loop rate [Hz]", 0.1, 2000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
 
 
-def build_inverse(values: dict[str, object]) -> GPIInverseStream:
-    """The inverse stream for a full parameter set; InputError with the reason when it is unusable."""
-    params = GPIParameters.from_dict({name: values[name] for name in PARAMETER_NAMES})
-    limit = float(values["max_current"])
-    return GPIInverseStream(params, int(values["operators"]), str(values["inverse_method"]), input_range=(-limit, limit))
-
-
-def model_values(path: str) -> dict[str, object]:
-    """a1..a11 and operators from a model file whose output is in metres (InputError otherwise)."""
-    model = load_model_file(path)
-    if model.parameters.output_unit != "m":
-        raise InputError(f"model file {path}: output unit is '{model.parameters.output_unit}', the setpoint is in m")
-    return {**model.parameters.to_dict(), "operators": model.operators}
+def model_from(values: dict[str, object], changed: str | None = None) -> tuple[IdentifiedModel, str]:
+    """(the model the parameter values name, a one-line description of where it came from): `changed`
+    (a model source just set) first, else model, else model_file, else the shipped default."""
+    order = [changed] if changed in MODEL_SOURCES and values[changed] else []
+    order += [name for name in ("model", "model_file") if values[name] and name not in order]
+    source = order[0] if order else None
+    if source == "model":
+        try:
+            return IdentifiedModel.from_yaml_text(str(values["model"])), "the pushed model"
+        except InputError as error:
+            raise InputError(f"parameter model: {error}") from None
+    path = str(values["model_file"]) if source == "model_file" else str(DEFAULT_MODEL_FILE)
+    return load_model_file(path), path
 
 
 class CompensatorNode(Node):
-    """Setpoint [m] in, current command [A] out, through the inverse GPI model (and a PI loop)."""
+    """Setpoint [m] in, current command [A] out, through the identified model's inverse (and a PI loop)."""
 
     def __init__(self, **node_options: object) -> None:
         super().__init__("compensator", **node_options)
         self._lock = threading.RLock()
         try:
             self.values = declare_all(self, COMPENSATOR_PARAMS)
-            if self.values["model_file"]:
-                self.values.update(model_values(str(self.values["model_file"])))
-                result = self.set_parameters_atomically([Parameter(name, value=self.values[name])
-                                                         for name in MODEL_PARAMETERS])
-                if not result.successful:
-                    raise InputError(f"model file {self.values['model_file']}: {result.reason}")
-            self.core = Compensator(build_inverse(self.values), **self.gains(self.values))
+            model, self.model_source = model_from(self.values)
+            self.core = Compensator(model, float(self.values["max_current"]), str(self.values["inverse_method"]),
+                                    **self.gains(self.values))
         except InputError as error:
             self.destroy_node()
             raise InputError(f"node 'compensator': {error}") from None
@@ -128,7 +116,12 @@ class CompensatorNode(Node):
         return checked_gains(**{name: values[name] for name in GAIN_PARAMETERS})
 
     @property
-    def inverse(self) -> GPIInverseStream:
+    def model(self) -> IdentifiedModel:
+        """The identified model in force."""
+        return self.core.model
+
+    @property
+    def inverse(self):
         """The streaming GPI inverse in force."""
         return self.core.inverse
 
@@ -144,25 +137,30 @@ class CompensatorNode(Node):
 
     def describe_model(self) -> str:
         """One line naming the model in force."""
-        source = self.values["model_file"] or "parameters a1..a11"
-        return (f"{self.inverse.method} inverse of a {self.inverse.operators}-operator GPI model from {source}, "
-                f"feedback {'on' if self.values['feedback'] else 'off'}")
+        effects = " + ".join(self.model.effect_names) or "no effect"
+        return (f"{self.inverse.method} inverse of a {self.model.operators}-operator GPI with {effects} from "
+                f"{self.model_source}, feedback {'on' if self.values['feedback'] else 'off'}")
 
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
-        """Validate a parameter change as a whole; swap in the new inverse when the model changed."""
+        """Validate a parameter change as a whole; swap in the new model when it changed."""
         candidate = {**self.values, **{change.name: change.value for change in changes}}
-        rebuild = any(change.name in REBUILD_PARAMETERS for change in changes)
+        names = {change.name for change in changes}
+        rebuild = bool(names & set(REBUILD_PARAMETERS))
         try:
-            inverse = build_inverse(candidate) if rebuild else None
             gains = self.gains(candidate)
+            if rebuild:
+                changed = next((name for name in MODEL_SOURCES if name in names), None)
+                model, source = model_from(candidate, changed)
+                core = Compensator(model, float(candidate["max_current"]), str(candidate["inverse_method"]), **gains)
         except InputError as error:
             return SetParametersResult(successful=False, reason=str(error))
         with self._lock:
             self.values = candidate
-            for name, value in gains.items():
-                setattr(self.core, name, value)
-            if inverse is not None:
-                self.core.set_inverse(inverse)
+            if rebuild:
+                self.core, self.model_source = core, source
+            else:
+                for name, value in gains.items():
+                    setattr(self.core, name, value)
         if rebuild:
             self.get_logger().info(f"model updated: {self.describe_model()}")
         return SetParametersResult(successful=True)
@@ -173,14 +171,15 @@ class CompensatorNode(Node):
         response.success, response.message = False, "parameter model_file is empty: nothing to reload"
         if path:
             try:
-                values = model_values(path)
+                model = load_model_file(path)
+                core = Compensator(model, float(self.values["max_current"]), str(self.values["inverse_method"]),
+                                   **self.gains(self.values))
             except InputError as error:
                 response.message = str(error)
             else:
-                result = self.set_parameters_atomically([Parameter(name, value=values[name])
-                                                         for name in MODEL_PARAMETERS])
-                response.success = result.successful
-                response.message = f"reloaded {path}" if result.successful else f"model file {path}: {result.reason}"
+                with self._lock:
+                    self.core, self.model_source = core, path
+                response.success, response.message = True, f"reloaded {path}"
         if response.success:
             self.get_logger().info(f"~/reload: {response.message}")
         else:
@@ -199,18 +198,17 @@ class CompensatorNode(Node):
 
     def on_joint_states(self, message: JointState) -> None:
         """Keep the latest measured position [m]."""
-        names = list(message.name)
-        joint = str(self.values["joint_name"])
-        index = names.index(joint) if joint in names else (0 if not names else None)
-        if index is not None and index < len(message.position) and math.isfinite(message.position[index]):
+        index = joint_index(message, str(self.values["joint_name"]))
+        if index is not None and math.isfinite(message.position[index]):
             self.measured_m = float(message.position[index])
 
     def on_tick(self) -> None:
-        """Fixed-rate step: the PI and lead update (feedback, or lag_tau_s > 0) or a repeat of the command."""
+        """Fixed-rate step: the PI, lead and drift update (feedback, or a lag or drift in the model) or a repeat
+        of the command."""
         with self._lock:
             if self.setpoint_m is None:
                 return
-            if self.values["feedback"] or self.core.lag_tau_s > 0.0:
+            if self.values["feedback"] or self.core.lag_tau_s > 0.0 or self.model.effect("drift") is not None:
                 self.publish_command(self.compute_command(self.elapsed_s()))
             else:
                 self.publish_command(self.command_a)

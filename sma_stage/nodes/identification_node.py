@@ -8,12 +8,13 @@ Services (std_srvs/Trigger):
   Signal time = node-clock time since the start times excite_time_scale (set it to the stage's time_scale
   when the stage runs faster than real time without use_sim_time; with use_sim_time keep 1).
 - `~/refit`: refused at once (success=false, one-line reason) while an excitation runs, while another refit
-  runs, or when the recording cannot support a fit. Otherwise fits the first (1 - holdout_fraction) of the
+  runs, or when the recording cannot support a fit. Otherwise runs the identification pipeline
+  (sma_stage.identify.pipeline.identify_recording): fits the first (1 - holdout_fraction) of the
   recording, validates on the held-out tail (the model runs over the whole recording, the errors are taken
-  on the tail only), then (diagnose_rounds > 0) diagnoses the residual the same way: when the first effect
-  named is thermal_lag, the GPI fitted with the lag is the model kept, with the lag for the compensator's
-  lead. Writes `model_file` atomically, pushes a1..a11, operators, lag_tau_s and heating_reference_a to
-  `<compensator_name>/set_parameters_atomically`, and answers with the JSON report (also on `~/report`).
+  on the tail only), diagnoses the residual (diagnose_rounds > 0) and deploys the GPI with every effect the
+  diagnosis added. Writes `model_file` atomically, pushes the whole model as one parameter (`model`, its
+  YAML text) to `<compensator_name>/set_parameters_atomically`, and answers with the JSON report (also on
+  `~/report`).
 - `~/clear`: empties the buffer.
 
 The recording is aligned as the offline reader aligns a bag (sma_stage.io.rosbag_io): input held at each
@@ -39,15 +40,12 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from sma_stage.errors import InputError
-from sma_stage.identify.diagnosis import diagnose
-from sma_stage.identify.effects import EffectFit
-from sma_stage.identify.fit import fit_gpi, predict
-from sma_stage.identify.metrics import error_metrics
-from sma_stage.identify.report import fit_report, kept_model
+from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
-from sma_stage.io.rosbag_io import output_times
+from sma_stage.io.rosbag_io import joint_index, output_times
 from sma_stage.io.series import Series
-from sma_stage.model.parameters import MAX_OPERATORS, GPIParameters
+from sma_stage.model import IdentifiedModel
+from sma_stage.model.parameters import MAX_OPERATORS
 from sma_stage.nodes._common import (
     COMMAND_QOS,
     JOINT_NAME,
@@ -70,8 +68,8 @@ IDENTIFICATION_PARAMS = [
     Param("min_samples", 100, "fewest aligned samples a refit accepts", 20, 10**8),
     Param("holdout_fraction", 0.25, "tail of the recording held out for validation", 0.05, 0.5),
     Param("operators", 10, "play operators of the fitted model (0: chosen by the fit)", 0, MAX_OPERATORS),
-    Param("diagnose_rounds", 1, "rounds of residual diagnosis after the fit (0: none); when the first effect "
-          "named is thermal_lag, the GPI with the lag and its lead go to the compensator", 0, 4),
+    Param("diagnose_rounds", 1, "rounds of residual diagnosis after the fit (0: none); the effects it adds are "
+          "in the model written and pushed", 0, 4),
     Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
           read_only=True),
@@ -108,44 +106,6 @@ def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, i
     if t.size == 0:
         raise InputError("no joint_states message came at or after the first current_cmd message")
     return make_series(t, u, y, "recording", min_samples=min_samples)
-
-
-def fit_recording(series: Series, operators: int | None, holdout_fraction: float,
-                  diagnose_rounds: int = 0) -> dict:
-    """Fit the head of the recording, validate on its held-out tail; the JSON report (design schema).
-    With diagnose_rounds > 0 the report also carries the diagnosis (`diagnose` on the head, validated
-    on the tail with the models run over the whole recording) and, under "lag_model", the GPI with the
-    thermal lag when that is the first effect named."""
-    ident, tail = series.split(1.0 - holdout_fraction)
-    fit = fit_gpi(ident.input, ident.output, operators=operators)
-    predicted = predict(fit, series.input)[len(ident):]
-    validation = error_metrics(tail.output, predicted) if np.ptp(tail.output) > 0.0 else None
-    source = (f"held-out tail of the recording: last {100 * holdout_fraction:g} % ({len(tail)} samples, "
-              f"t = {tail.t[0]:.3f} to {tail.t[-1]:.3f} s), model run over the whole recording")
-    report = fit_report(fit, validation, source)
-    report["samples"] = {"identification": len(ident), "validation": len(tail)}
-    if diagnose_rounds > 0 and validation is not None:
-        try:
-            found = diagnose(ident, series, base=fit, operators=operators, max_rounds=diagnose_rounds,
-                             scored_from=len(ident), output_unit=fit.parameters.output_unit)
-        except Exception as error:  # noqa: BLE001 -- the fit stands whatever the diagnosis meets
-            report["diagnosis_failed"] = (f"diagnosis failed, the plain GPI fit is kept: {type(error).__name__}: "
-                                          f"{' '.join(str(error).split())}")
-            return report
-        report["diagnosis"] = found.to_dict()
-        first = found.rounds[0].winner if found.rounds else None
-        if first is not None and first.effect == "thermal_lag":
-            report["lag_model"] = lag_model(first.fit)
-    return report
-
-
-def lag_model(fit: EffectFit) -> dict:
-    """The GPI fitted with the thermal lag, as the compensator takes it: a1..a11, operators, lag_tau_s
-    and heating_reference_a (0: the lag of the current)."""
-    return {"parameters": fit.gpi_parameters.to_dict(), "operators": fit.operators,
-            "output_unit": fit.gpi_parameters.output_unit,
-            "lag_tau_s": float(fit.parameters["tau_s"]),
-            "heating_reference_a": float(fit.parameters.get("joule_reference_a", 0.0))}
 
 
 class BagThread:
@@ -306,10 +266,8 @@ class IdentificationNode(Node):
 
     def on_joint_states(self, message: JointState) -> None:
         """Record the stage position [m] with its header stamp and arrival time."""
-        names = list(message.name)
-        joint = str(self.values["joint_name"])
-        index = names.index(joint) if joint in names else (0 if not names else None)
-        if index is None or index >= len(message.position):
+        index = joint_index(message, str(self.values["joint_name"]))
+        if index is None:
             return
         receive_ns = self.now_ns()
         stamp_ns = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
@@ -458,52 +416,45 @@ class IdentificationNode(Node):
         return response
 
     def refit(self) -> dict:
-        """Fit, validate, write the model file, push the parameters; the report (InputError when refused)."""
+        """Identify, write the model file, push the model; the report (InputError when refused)."""
         series = self.snapshot()
-        operators = int(self.values["operators"]) or None
-        report = fit_recording(series, operators, float(self.values["holdout_fraction"]),
-                               int(self.values["diagnose_rounds"]))
-        model = kept_model(report)
-        report["warnings"] = [report["diagnosis_failed"]] if "diagnosis_failed" in report else []
-        report["model_file"] = self.write_model(model, series)
-        report["compensator"] = {**self.push(model), "lag_tau_s": model["lag_tau_s"],
-                                 "heating_reference_a": model["heating_reference_a"]}
+        found = identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
+                                   operators=int(self.values["operators"]) or None,
+                                   diagnose_rounds=int(self.values["diagnose_rounds"]),
+                                   source="identification node ~/refit")
+        report = found.report
+        report["model_file"] = self.write_model(found.model)
+        report["compensator"] = self.push(found.model)
         if not report["compensator"]["pushed"]:
             report["warnings"].append(report["compensator"]["message"])
         return report
 
-    def write_model(self, model: dict, series: Series) -> str | None:
-        """Write the fitted model file atomically (None when model_file is empty)."""
+    def write_model(self, model: IdentifiedModel) -> str | None:
+        """Write the identified model's file atomically (None when model_file is empty)."""
         path = str(self.values["model_file"])
         if not path:
             return None
-        params = GPIParameters.from_dict(model["parameters"], output_unit=model["output_unit"])
-        metadata = {"source": "identification node ~/refit", "samples": len(series),
-                    "lag_tau_s": model["lag_tau_s"], "heating_reference_a": model["heating_reference_a"]}
         try:
-            params.to_yaml(path, int(model["operators"]), metadata=metadata)
+            model.save(path)
         except OSError as error:
             raise InputError(f"cannot write model_file {path}: {error.strerror or error}") from None
         return path
 
-    def push(self, model: dict) -> dict:
-        """Send a1..a11, operators, lag_tau_s and heating_reference_a to the compensator in one atomic set."""
+    def push(self, model: IdentifiedModel) -> dict:
+        """Send the whole model to the compensator as one atomic parameter change (its `model`)."""
         name = self.push_client.srv_name
         if not self.push_client.wait_for_service(timeout_sec=float(self.values["push_timeout"])):
-            return {"pushed": False, "message": f"compensator service {name} not available: parameters not pushed"}
-        parameters = [Parameter(key, value=float(value)).to_parameter_msg() for key, value in model["parameters"].items()]
-        parameters.append(Parameter("operators", value=int(model["operators"])).to_parameter_msg())
-        parameters += [Parameter(name, value=float(model[name])).to_parameter_msg()
-                       for name in ("lag_tau_s", "heating_reference_a")]
+            return {"pushed": False, "message": f"compensator service {name} not available: model not pushed"}
+        parameters = [Parameter("model", value=model.to_yaml_text()).to_parameter_msg()]
         future = self.push_client.call_async(SetParametersAtomically.Request(parameters=parameters))
         done = threading.Event()
         future.add_done_callback(lambda _: done.set())
         if not done.wait(max(float(self.values["push_timeout"]), 1.0)) or future.result() is None:
-            return {"pushed": False, "message": f"no answer from {name}: parameters may not be in force"}
+            return {"pushed": False, "message": f"no answer from {name}: the model may not be in force"}
         result = future.result().result
         if not result.successful:
-            return {"pushed": False, "message": f"compensator refused the parameters: {result.reason}"}
-        return {"pushed": True, "message": f"parameters set through {name}"}
+            return {"pushed": False, "message": f"compensator refused the model: {result.reason}"}
+        return {"pushed": True, "message": f"model set through {name}"}
 
 
 def main(args: list[str] | None = None) -> None:

@@ -1,0 +1,96 @@
+"""The one identification pipeline: fit the GPI, diagnose the residual, choose the model to deploy (the
+GPI with every effect the diagnosis added), and report. `gpi_tool fit/diagnose`, the identification
+node's `~/refit`, the demo and the benchmarks all call `identify_recording`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from sma_stage.errors import InputError
+from sma_stage.identify.diagnosis import Diagnosis, diagnose
+from sma_stage.identify.fit import FitResult, fit_gpi, predict
+from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.identify.report import fit_report
+from sma_stage.io.series import Series
+from sma_stage.model.identified import IdentifiedModel
+
+Progress = Callable[[str], None] | None
+
+
+@dataclass(frozen=True)
+class Identification:
+    """What the pipeline gives: the model to deploy (its state where the record ended), the plain GPI fit,
+    the diagnosis (None when not asked for, or when it failed: see `warnings`), the JSON report and the
+    validation record with the sample its errors count from."""
+
+    model: IdentifiedModel
+    fit: FitResult
+    diagnosis: Diagnosis | None
+    report: dict
+    warnings: list[str]
+    validation: Series | None
+    scored_from: int
+
+
+def identify_recording(record: Series, validation: Series | None = None, holdout_fraction: float | None = None,
+                       operators: int | None = None, diagnose_rounds: int = 0, output_unit: str = "m",
+                       progress: Progress = None, source: str = "") -> Identification:
+    """Identify the model of a record (t [s], input [A], output [output_unit]).
+
+    Validation: a separate record (`validation`, run from an idle stage), or the held-out tail of this one
+    (`holdout_fraction`: the head is fitted, every model runs over the whole record and the errors count
+    on the tail), or none. With diagnose_rounds > 0 (and validation data) the residual is diagnosed and
+    the model deployed is the GPI with every effect it added; should the diagnosis fail, the plain fit is
+    deployed and `warnings` says why in one line. The model's state is where it leaves the record.
+    """
+    if validation is not None and holdout_fraction is not None:
+        raise InputError("give validation data or a holdout fraction, not both")
+    ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
+    fit = fit_gpi(ident.input, ident.output, operators=operators, output_unit=output_unit, progress=progress)
+    errors = _validation_errors(fit, valid, scored_from)
+    report = fit_report(fit, errors, validation_source)
+    report["samples"] = {"identification": len(ident), "validation": (len(valid) - scored_from) if valid else 0}
+    found, warnings = None, []
+    if diagnose_rounds > 0 and errors is not None:
+        try:
+            found = diagnose(ident, valid, base=fit, operators=operators, max_rounds=diagnose_rounds,
+                             scored_from=scored_from, output_unit=fit.parameters.output_unit, progress=progress)
+        except Exception as error:  # noqa: BLE001 -- the fit stands whatever the diagnosis meets
+            warnings.append(f"diagnosis failed, the plain GPI fit is kept: {type(error).__name__}: "
+                            f"{' '.join(str(error).split())}")
+    model = found.chain.model if found is not None else IdentifiedModel(fit.parameters, fit.operators)
+    continued = record if holdout_fraction is not None else ident
+    _, end_state = model.run(continued.t, continued.input)
+    metadata = {"source": source or record.source, "samples": len(continued)}
+    model = replace(model, state=end_state, metadata=metadata)
+    if found is not None:
+        report["diagnosis"] = found.to_dict()
+    report["identified_model"] = model.without_state().to_dict()
+    report["warnings"] = list(warnings)
+    return Identification(model, fit, found, report, warnings, valid, scored_from)
+
+
+def _split(record: Series, validation: Series | None, holdout_fraction: float | None
+           ) -> tuple[Series, Series | None, int, str]:
+    """(identification data, validation data, first scored validation sample, where validation comes from)."""
+    if holdout_fraction is not None:
+        if not 0.0 < holdout_fraction < 1.0:
+            raise InputError(f"holdout fraction must be between 0 and 1, got {holdout_fraction}")
+        ident, tail = record.split(1.0 - holdout_fraction)
+        source = (f"held-out tail of the recording: last {100 * holdout_fraction:g} % ({len(tail)} samples, "
+                  f"t = {tail.t[0]:.3f} to {tail.t[-1]:.3f} s), model run over the whole recording")
+        return ident, record, len(ident), source
+    if validation is not None:
+        return record, validation, 0, validation.source
+    return record, None, 0, "none (no validation data)"
+
+
+def _validation_errors(fit: FitResult, valid: Series | None, scored_from: int) -> ErrorMetrics | None:
+    """The plain fit's errors on the scored validation samples (None without validation or excitation)."""
+    if valid is None or np.ptp(valid.output[scored_from:]) <= 0.0:
+        return None
+    return error_metrics(valid.output[scored_from:], predict(fit, valid.input)[scored_from:])
