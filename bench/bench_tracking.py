@@ -1,10 +1,10 @@
 """Tracking the paper's validation signal on the stage simulator, in process and deterministic.
 
 Identification: the paper's identification signal (1000 s) drives the simulator, stepped every
-PLANT_STEP_S; the record kept every RECORD_EVERY steps is fitted with a GPI (fit_gpi's own operator
-count) and with the thermal_lag effect (its operator count chosen again) in both its readings: the GPI
-sees the current through tau v' = u - v, or the Joule heating u |u| / u_ref through the same lag (the
-reading `diagnose` keeps when it fits better, reported as joule_reference_a = u_ref).
+PLANT_STEP_S; the record kept every RECORD_EVERY steps goes through the package's identification
+pipeline (identify_recording, as gpi_tool diagnose and ~/refit run it), validated on the paper's
+validation signal run the same way. Two models: the plain GPI it fits and the identified model it
+deploys (the GPI with the effects the diagnosis added).
 Tracking: a fresh simulator
 follows the validation signal scaled to STROKE_FRACTION of the stroke measured during the identification
 (after SETTLE_S at the bottom of the range and SETTLE_S at the signal's first value, as the demo does),
@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from sma_stage.control import Compensator
-from sma_stage.identify.effects import InputTransformEffect, fit_effect, lagged_input, recount_effect
-from sma_stage.identify.fit import fit_gpi
-from sma_stage.model import GPIInverseStream, GPIParameters
+from sma_stage.identify.pipeline import identify_recording
+from sma_stage.io import make_series
+from sma_stage.model import IdentifiedModel
 from sma_stage.plant import StageSimulator, simulate
 from sma_stage.signals import IDENTIFICATION_DURATION_S, paper_identification_signal, paper_validation_signal
 
@@ -48,14 +48,10 @@ SCAN_KI = (0.3, 1.0, 2.0, 4.0, 8.0)
 
 @dataclass(frozen=True)
 class Model:
-    """A fitted model the compensator inverts: the GPI, its lag [s] (0: none) and the lag's heating
-    reference [A] (0: the lag acts on the current)."""
+    """A model the compensator inverts, with the name the table gives it."""
 
     name: str
-    parameters: GPIParameters
-    operators: int
-    tau_s: float
-    heating_reference_a: float
+    model: IdentifiedModel
     identification_rms_pct: float
 
 
@@ -84,26 +80,28 @@ class Mode:
         return f"{self.model.name}, {loop}"
 
 
-def identify() -> Identified:
-    """Run the identification signal through the simulator and fit the three models."""
-    started = time.perf_counter()
-    steps = int(round(IDENTIFICATION_DURATION_S / PLANT_STEP_S))
-    applied_from_s = PLANT_STEP_S * np.arange(steps)
-    current = paper_identification_signal(applied_from_s)
-    run = simulate(current, PLANT_STEP_S, seed=IDENTIFICATION_SEED)
+def record(signal: np.ndarray, name: str) -> tuple:
+    """(series kept every RECORD_EVERY plant steps, the whole run) of the simulator driven by signal [A]."""
+    run = simulate(signal, PLANT_STEP_S, seed=IDENTIFICATION_SEED)
     kept = slice(RECORD_EVERY - 1, None, RECORD_EVERY)
-    t, u, y = run.t_s[kept], run.current_a[kept], run.measured_position_m[kept]
-    gpi = fit_gpi(u, y)
-    on_current = InputTransformEffect("thermal_lag", "tau_s", lagged_input).fit(t, u, y, gpi)
-    models = [Model("GPI inverse", gpi.parameters, gpi.operators, 0.0, 0.0, gpi.identification.rms_pct)]
-    for name, lag in (("GPI + lag lead (lag on the current)", on_current),
-                      ("GPI + lag lead (thermal_lag as diagnosed)", fit_effect("thermal_lag", t, u, y, gpi))):
-        lag = recount_effect(lag, t, u, y)
-        reference = lag.parameters.get("joule_reference_a", 0.0)
-        models.append(Model(name + (f", heating reference {reference:g} A" if reference else ""), lag.gpi_parameters,
-                            lag.operators, lag.parameters["tau_s"], reference, lag.identification.rms_pct))
+    series = make_series(run.t_s[kept], run.current_a[kept], run.measured_position_m[kept], name)
+    return series, run
+
+
+def identify() -> Identified:
+    """Run the identification and validation signals through the simulator and identify the models."""
+    started = time.perf_counter()
+    applied_from_s = PLANT_STEP_S * np.arange(int(round(IDENTIFICATION_DURATION_S / PLANT_STEP_S)))
+    ident, run = record(paper_identification_signal(applied_from_s), "identification")
+    valid, _ = record(paper_validation_signal(applied_from_s), "validation")
+    found = identify_recording(ident, valid, diagnose_rounds=4)
+    effects = " + ".join(found.model.effect_names) or "nothing added"
+    after = found.diagnosis.after.rms_pct if found.diagnosis else found.report["validation"]["rms_pct"]
+    models = (Model("GPI inverse", IdentifiedModel(found.fit.parameters, found.fit.operators),
+                    found.fit.identification.rms_pct),
+              Model(f"identified model ({effects})", found.model.without_state(), after))
     stroke = (float(run.measured_position_m.min()), float(run.measured_position_m.max()))
-    return Identified(tuple(models), stroke, time.perf_counter() - started)
+    return Identified(models, stroke, time.perf_counter() - started)
 
 
 def setpoints(stroke_m: tuple[float, float], t_s: np.ndarray) -> np.ndarray:
@@ -116,11 +114,7 @@ def setpoints(stroke_m: tuple[float, float], t_s: np.ndarray) -> np.ndarray:
 
 def compensator_for(mode: Mode) -> Compensator:
     """The control core for the mode's model and gains."""
-    model = mode.model
-    inverse = GPIInverseStream(model.parameters, model.operators, "exact",
-                               input_range=(-MAX_CURRENT_A, MAX_CURRENT_A))
-    return Compensator(inverse, lag_tau_s=model.tau_s, kp=mode.kp, ki=mode.ki,
-                       heating_reference_a=model.heating_reference_a)
+    return Compensator(mode.model.model, MAX_CURRENT_A, kp=mode.kp, ki=mode.ki)
 
 
 def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[float, float]:
@@ -153,8 +147,9 @@ def print_identification(identified: Identified) -> None:
     low, high = identified.stroke_m
     print(f"Identification ({identified.seconds:.1f} s): stroke {1e6 * low:.1f} to {1e6 * high:.1f} um")
     for model in identified.models:
-        print(f"  {model.name}: {model.operators} operators, tau {model.tau_s:.2f} s, "
-              f"{model.identification_rms_pct:.2f} % RMS on the identification record")
+        effects = "; ".join(f"{effect.kind} {effect.parameters}" for effect in model.model.effects) or "no effect"
+        print(f"  {model.name}: {model.model.operators} operators, {effects}; "
+              f"{model.identification_rms_pct:.2f} % RMS ({'validation' if model.model.effects else 'identification'})")
 
 
 def print_table(identified: Identified, control_step_s: float) -> dict[bool, float]:

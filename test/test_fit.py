@@ -156,10 +156,10 @@ def test_information_criterion_follows_its_formula():
     _, u, y = identification_data(noise=5e-6, seed=4)
     result = fit_gpi(u, y, operators=OPERATORS, initial=RAW_TRUTH)
     n = result.samples
-    assert information_criterion(result, "aic") == pytest.approx(n * math.log(result.cost / n) + 2 * 10)
-    assert information_criterion(result) == pytest.approx(n * math.log(result.cost / n) + math.log(n) * 10)
+    assert information_criterion(result.cost, result.samples, result.parameter_count, "aic") == pytest.approx(n * math.log(result.cost / n) + 2 * 10)
+    assert information_criterion(result.cost, result.samples, result.parameter_count) == pytest.approx(n * math.log(result.cost / n) + math.log(n) * 10)
     with pytest.raises(InputError):
-        information_criterion(result, "hqc")
+        information_criterion(result.cost, result.samples, result.parameter_count, "hqc")
 
 
 def test_quasi_static_data_fit_without_time():

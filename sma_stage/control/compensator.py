@@ -84,7 +84,6 @@ class Compensator:
                  kp: float = 0.0, ki: float = 0.0) -> None:
         self.kp = kp
         self.ki = ki
-        self.command_a = 0.0
         self.set_model(model, max_current_a, method)
 
     @property
@@ -124,20 +123,23 @@ class Compensator:
         self.reset()
 
     def reset(self) -> None:
-        """Integral to 0; the lag and the drift from the model's carried state (else an idle stage)."""
+        """Integral to 0; the lag (with the last command) and the drift from the model's carried state,
+        else an idle stage at 0 A."""
         state = self._model.state
         self.integral_m = 0.0
         self.target_m = 0.0
         self.saturated = 0
-        self.lag_state_a = self._carried(self._lag, state, 0.0)
-        self.drift_elapsed_s = self._carried(self._drift, state, 0.0)
+        self.lag_state_a = self._carried(self._lag, state, 0, 0.0)
+        self.command_a = current_for_heating(self._carried(self._lag, state, 1, 0.0), self._reference)
+        self.drift_elapsed_s = self._carried(self._drift, state, 0, 0.0)
         self._hold_s = 0.0
 
-    def _carried(self, effect: object, state: object, default: float) -> float:
+    def _carried(self, effect: object, state: object, index: int, default: float) -> float:
+        """Value `index` of the effect's carried state (the lag's: its state, its last drive), else default."""
         if effect is None or state is None:
             return default
         carried = state.effects[self._model.effects.index(effect)]
-        return float(carried.values[0]) if carried is not None and carried.values else default
+        return float(carried.values[index]) if carried is not None and len(carried.values) > index else default
 
     @property
     def lag_tau_s(self) -> float:

@@ -29,11 +29,10 @@ from sma_stage.identify.effects import (
     attempt,
     check_record,
     fit_effect,
-    information_criterion,
     no_effect,
     recount_effect,
 )
-from sma_stage.identify.fit import FitResult, fit_gpi, predict
+from sma_stage.identify.fit import FitResult, fit_gpi, information_criterion, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
 from sma_stage.model.identified import IdentifiedModel

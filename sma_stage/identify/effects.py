@@ -28,7 +28,13 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
 from sma_stage.errors import InputError
-from sma_stage.identify.fit import OPERATOR_CANDIDATES, OPERATOR_MARGIN, FitResult, fit_gpi
+from sma_stage.identify.fit import (
+    OPERATOR_CANDIDATES,
+    FitResult,
+    choose_operator_count,
+    fit_gpi,
+    information_criterion,
+)
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.effects import Effect, drift_regressors, rate_forward
 from sma_stage.model.identified import IdentifiedModel
@@ -121,11 +127,6 @@ class EffectFit:
         return information_criterion(self.cost, self.samples, self.parameter_count)
 
 
-def information_criterion(cost: float, samples: int, parameter_count: int) -> float:
-    """BIC for Gaussian errors: N ln(SSR/N) + k ln N (lower is better)."""
-    return samples * math.log(max(cost, np.finfo(float).tiny) / samples) + parameter_count * math.log(samples)
-
-
 def check_record(t: np.ndarray, u: np.ndarray, y: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Float copies of (t, u[, y]), refused unless 1-D, equally long, finite, and t increasing."""
     arrays = [np.array(a, dtype=float).reshape(-1) for a in ((t, u) if y is None else (t, u, y))]
@@ -179,13 +180,15 @@ def _fit_or_none(v: np.ndarray, y: np.ndarray, operators: int | None, initial: G
 
 
 def _pick(fits: Sequence) -> object:
-    """fit_gpi's operator-count rule over fits of several counts (anything with .cost and .operators):
-    the smallest count whose RMS error is within OPERATOR_MARGIN of the best; of it, the lowest cost.
-    The first fit must exist (the one the others are compared with)."""
-    best = lowest_cost(fits).cost
-    eligible = [fit for fit in fits if fit is not None and math.sqrt(fit.cost) <= (1.0 + OPERATOR_MARGIN) * math.sqrt(best)]
-    count = min(fit.operators for fit in eligible)
-    return min((fit for fit in eligible if fit.operators == count), key=lambda fit: fit.cost)
+    """fit_gpi's operator-count rule (choose_operator_count) over fits of several counts (anything with
+    .cost and .operators; None for one that failed); of the count chosen, the lowest cost. The first fit
+    must exist (the one the others are compared with)."""
+    found = [fit for fit in fits if fit is not None and math.isfinite(fit.cost)]
+    costs: dict[int, float] = {}
+    for fit in found:
+        costs[fit.operators] = min(fit.cost, costs.get(fit.operators, math.inf))
+    count = choose_operator_count(costs)
+    return lowest_cost(fit for fit in found if fit.operators == count)
 
 
 class _Refits:
@@ -292,7 +295,7 @@ class InputTransformEffect(Candidate):
             progress: Progress = None) -> EffectFit:
         started = time.perf_counter()
         bounds = _lag_range(t)
-        keep = _thinned(t.size)
+        keep = _even_indices(t.size)
         wide = _Refits(lambda x: self.transform(t[keep], u[keep], x), y[keep], base)
         log_value = _scalar_search(wide.cost, *bounds, SEARCH_GRID_POINTS)
         found = wide.fit(math.exp(log_value)) or base
@@ -325,7 +328,7 @@ class InputTransformEffect(Candidate):
                        parameter_count, started)
 
 
-def _thinned(samples: int) -> np.ndarray:
+def _even_indices(samples: int) -> np.ndarray:
     """Indices of an evenly thinned copy of at most about SEARCH_SAMPLES samples, for the wide search."""
     return np.arange(0, samples, max(1, round(samples / SEARCH_SAMPLES)))
 

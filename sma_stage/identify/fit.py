@@ -119,14 +119,14 @@ def _sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states: np.
     return out
 
 
-def information_criterion(result: FitResult, kind: str = "bic") -> float:
-    """N log(SSR/N) + k * (2 for "aic", log N for "bic"), k = result.parameter_count."""
-    penalties = {"aic": 2.0, "bic": math.log(result.samples)}
+def information_criterion(cost: float, samples: int, parameter_count: int, kind: str = "bic") -> float:
+    """N log(SSR/N) + k * (2 for "aic", log N for "bic") for Gaussian errors (lower is better); SSR = cost
+    [output unit^2], N samples, k parameters."""
+    penalties = {"aic": 2.0, "bic": math.log(samples)}
     if kind not in penalties:
         raise InputError(f"information criterion must be 'aic' or 'bic', got {kind!r}")
-    n = result.samples
-    mean_square = max(result.cost / n, np.finfo(float).tiny)
-    return n * math.log(mean_square) + result.parameter_count * penalties[kind]
+    mean_square = max(cost / samples, np.finfo(float).tiny)
+    return samples * math.log(mean_square) + parameter_count * penalties[kind]
 
 
 def predict(result: FitResult, u: np.ndarray, regressors: np.ndarray | None = None,
@@ -545,8 +545,9 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
                    note)
 
 
-def _choose_count(costs: dict[int, float]) -> int:
-    """The smallest count whose RMS error is within OPERATOR_MARGIN of the best."""
+def choose_operator_count(costs: dict[int, float]) -> int:
+    """The operator-count rule: the smallest count whose RMS error is within OPERATOR_MARGIN of the best
+    (costs: SSR by count, all on the same data)."""
     best = min(costs.values())
     return min(count for count, cost in costs.items() if math.sqrt(cost) <= (1 + OPERATOR_MARGIN) * math.sqrt(best))
 
@@ -567,13 +568,13 @@ def scale_problems(params: GPIParameters, operators: int, y: np.ndarray) -> list
 
 def _well_scaled_choice(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, fits: dict[int, _Search],
                         unit: str) -> tuple[int, GPIParameters, np.ndarray, list[str]]:
-    """The operator count by _choose_count among the fits whose parameters pass scale_problems; its
+    """The operator count by choose_operator_count among the fits whose parameters pass scale_problems; its
     normalised parameters and regressor coefficients; why the counts passed over were refused.
     InputError when none passes."""
     costs = {count: found.cost for count, found in fits.items() if math.isfinite(found.cost)}
     refused = [f"{count} operators: the search ended on a non-finite cost" for count in fits if count not in costs]
     while costs:
-        chosen = _choose_count(costs)
+        chosen = choose_operator_count(costs)
         params, coefficients = _final_parameters(u, y, regressors, chosen, fits[chosen], unit)
         problems = scale_problems(params, chosen, y)
         if not problems:
