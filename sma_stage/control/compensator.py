@@ -36,8 +36,18 @@ from sma_stage.errors import InputError, finite_number
 from sma_stage.model import GPIInverseStream, IdentifiedModel
 from sma_stage.model.effects import current_for_heating, joule_heating, lag_drive_for, lag_step
 
-UNCOMPENSATED = {"delay": "a dead time cannot be led causally: the position follows the setpoint delay_s late",
-                 "rate": "compensated at zero input rate (the quasi-static inverse)"}
+COMPENSATION = {
+    "thermal_lag": "inverted: the lead brings the lag's state to the inverse's output over each step",
+    "delay": "left uncompensated: a dead time cannot be led causally, the position follows the setpoint delay_s "
+             "late (the PI loop sees it in the measurement)",
+    "rate": "compensated quasi-statically: the inverse of the rate model's GPI at zero input rate",
+    "drift": "taken off the target as the model's time runs on",
+}
+
+
+def compensation_notes(model: IdentifiedModel) -> dict[str, str]:
+    """How the compensator treats each of the model's effects (effect kind -> one line)."""
+    return {kind: COMPENSATION[kind] for kind in model.effect_names}
 
 
 def _non_negative(name: str, value: float) -> float:

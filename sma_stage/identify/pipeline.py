@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import Diagnosis, diagnose
 from sma_stage.identify.fit import FitResult, fit_gpi, predict
@@ -70,6 +71,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     if found is not None:
         report["diagnosis"] = found.to_dict()
     report["identified_model"] = model.without_state().to_dict()
+    report["compensation"] = compensation_notes(model)
     report["warnings"] = list(warnings)
     return Identification(model, fit, found, report, warnings, valid, scored_from)
 

@@ -52,6 +52,9 @@ def markdown_summary(report: dict, title: str) -> str:
     lines += ["", f"Validation data: {report['validation_source']}. Fit time: {report['fit_seconds']:.2f} s."]
     if "diagnosis" in report:
         lines += diagnosis_markdown(report["diagnosis"])
+    if report.get("compensation"):
+        lines += ["", "## Compensation of the model written", ""]
+        lines += [f"- {kind}: {how}" for kind, how in report["compensation"].items()]
     return "\n".join(lines) + "\n"
 
 

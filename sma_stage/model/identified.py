@@ -20,6 +20,7 @@ import yaml
 
 from sma_stage.errors import InputError
 from sma_stage.io.atomic import atomic_write_text
+from sma_stage.io.plain import plain_values
 from sma_stage.model.effects import Effect, EffectState, rate_forward
 from sma_stage.model.forward import as_signal, forward_with_states
 from sma_stage.model.parameters import DEFAULT_OPERATORS, MODEL_KIND, GPIParameters, check_operators
@@ -145,7 +146,7 @@ class IdentifiedModel:
 
     def to_yaml_text(self) -> str:
         """The model file's text."""
-        return HEADER + yaml.safe_dump(_plain(self.to_dict()), sort_keys=False)
+        return HEADER + yaml.safe_dump(plain_values(self.to_dict()), sort_keys=False)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the model file atomically."""
@@ -248,14 +249,3 @@ def _number(value: object, what: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise InputError(f"{what} must hold finite numbers, got {value!r}")
     return float(value)
-
-
-def _plain(value: object) -> object:
-    """Numpy scalars as Python floats, for yaml.safe_dump."""
-    if isinstance(value, dict):
-        return {key: _plain(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(item) for item in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value

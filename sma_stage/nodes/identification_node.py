@@ -24,7 +24,6 @@ output time; output times are the JointState header stamps unless they run on an
 from __future__ import annotations
 
 import json
-import math
 import queue
 import threading
 from collections import deque
@@ -42,6 +41,7 @@ from std_srvs.srv import Trigger
 from sma_stage.errors import InputError
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
+from sma_stage.io.plain import plain_values
 from sma_stage.io.rosbag_io import joint_index, output_times
 from sma_stage.io.series import Series
 from sma_stage.model import IdentifiedModel
@@ -151,19 +151,6 @@ class BagThread:
         self._queue.put(None)
         self._thread.join()
         return self.path
-
-
-def json_safe(value: object) -> object:
-    """The value with NaN/inf floats replaced by None, so json.dumps writes strict JSON."""
-    if isinstance(value, dict):
-        return {key: json_safe(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(item) for item in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 class IdentificationNode(Node):
@@ -408,7 +395,7 @@ class IdentificationNode(Node):
         finally:
             with self._lock:
                 self.refitting = False
-        text = json.dumps(json_safe(report))
+        text = json.dumps(plain_values(report, non_finite_as_none=True))
         self.last_report = report
         self.report_pub.publish(String(data=text))
         response.success, response.message = True, text
