@@ -23,8 +23,8 @@ def with_effects(*effects: Effect) -> IdentifiedModel:
     return IdentifiedModel(MODEL.parameters, MODEL.operators, effects)
 
 
-def lagged(tau_s: float, heating_reference_a: float = 0.0) -> IdentifiedModel:
-    reference = {"joule_reference_a": heating_reference_a} if heating_reference_a else {}
+def lagged(tau_s: float, joule_reference_a: float = 0.0) -> IdentifiedModel:
+    reference = {"joule_reference_a": joule_reference_a} if joule_reference_a else {}
     return with_effects(Effect("thermal_lag", {"tau_s": tau_s, **reference}))
 
 
@@ -34,22 +34,22 @@ def slow_setpoints(steps: int, dt_s: float) -> np.ndarray:
     return 5e-5 + 1.5e-4 * np.sin(2.0 * np.pi * t / 200.0) + 5e-5 * np.sin(2.0 * np.pi * t / 70.0)
 
 
-def lag_input(current_a: float, heating_reference_a: float) -> float:
-    return current_a * abs(current_a) / heating_reference_a if heating_reference_a else current_a
+def lag_input(current_a: float, joule_reference_a: float) -> float:
+    return current_a * abs(current_a) / joule_reference_a if joule_reference_a else current_a
 
 
-@pytest.mark.parametrize("heating_reference_a", [0.0, LIMIT_A, 3.0])
-def test_the_lead_undoes_a_first_order_lag_exactly(heating_reference_a):
+@pytest.mark.parametrize("joule_reference_a", [0.0, LIMIT_A, 3.0])
+def test_the_lead_undoes_a_first_order_lag_exactly(joule_reference_a):
     tau_s, dt_s = 8.0, 0.2
     setpoints = slow_setpoints(3000, dt_s)
-    core = Compensator(lagged(tau_s, heating_reference_a), LIMIT_A)
+    core = Compensator(lagged(tau_s, joule_reference_a), LIMIT_A)
     reach = core.inverse.input_range  # the lag's drive: the Joule heating's range in the heating reading
     wanted = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=reach).run(setpoints)[0]
     kept = math.exp(-dt_s / tau_s)
     state, unclipped = 0.0, 0
     for setpoint, target in zip(setpoints, wanted, strict=True):
         current = core.command(setpoint, None, dt_s)
-        drive = lag_input(current, heating_reference_a)
+        drive = lag_input(current, joule_reference_a)
         state = drive + (state - drive) * kept  # the current held for dt_s through tau v' = u - v
         if core.saturated == 0:
             unclipped += 1

@@ -390,10 +390,10 @@ def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
 
 def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gains(ros):
     compensator = compensator_node(ros, rate_hz=2.0, kp=1.0, ki=0.1)
-    assert compensator.core.lag_tau_s == 0.0
+    assert compensator.core.tau_s == 0.0
     lag = Effect("thermal_lag", {"tau_s": 11.0})
     assert compensator.set_parameters([Parameter("model", value=model_text(DEFAULT_PARAMS, 10, lag))])[0].successful
-    assert compensator.core.lag_tau_s == 11.0 and compensator.inverse.params == DEFAULT_PARAMS
+    assert compensator.core.tau_s == 11.0 and compensator.inverse.params == DEFAULT_PARAMS
     probe = CompensatorProbe(ros, compensator)
     plain = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-5.0, 5.0)).step(2e-4)
     probe.setpoint_pub.publish(Float64(data=2e-4))
@@ -404,7 +404,7 @@ def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gain
     for name, bad in (("kp", math.nan), ("ki", math.inf)):
         result = compensator.set_parameters([Parameter(name, value=bad)])[0]
         assert not result.successful and "\n" not in result.reason
-    assert (compensator.core.lag_tau_s, compensator.core.kp, compensator.core.ki) == (11.0, 1.0, 0.1)
+    assert (compensator.core.tau_s, compensator.core.kp, compensator.core.ki) == (11.0, 1.0, 0.1)
 
 
 def test_compensator_refuses_a_missing_model_file_at_start(ros, tmp_path):

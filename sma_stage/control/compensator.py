@@ -152,7 +152,7 @@ class Compensator:
         return float(carried.values[index]) if carried is not None and len(carried.values) > index else default
 
     @property
-    def lag_tau_s(self) -> float:
+    def tau_s(self) -> float:
         """The thermal lag's time constant [s] the lead undoes (0: none)."""
         return self._lag.parameters["tau_s"] if self._lag is not None else 0.0
 
@@ -184,7 +184,7 @@ class Compensator:
         return target
 
     def _lead(self, lag_input: float, dt: float) -> float:
-        tau = self.lag_tau_s
+        tau = self.tau_s
         if dt > 0.0:
             self._hold_s = dt
             held = float(joule_heating(self.command_a, self._reference))

@@ -208,7 +208,7 @@ class CompensatorNode(Node):
         with self._lock:
             if self.setpoint_m is None:
                 return
-            if self.values["feedback"] or self.core.lag_tau_s > 0.0 or self.model.effect("drift") is not None:
+            if self.values["feedback"] or self.core.tau_s > 0.0 or self.model.effect("drift") is not None:
                 self.publish_command(self.compute_command(self.elapsed_s()))
             else:
                 self.publish_command(self.command_a)
