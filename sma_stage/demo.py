@@ -100,8 +100,9 @@ class TrackingRun:
 class StageSession:
     """The demo's own node: records joint_states and publishes a setpoint profile at rate_hz.
 
-    Times are the ROS clock's (system time), which also stamps joint_states; a profile is a function of
-    simulated time, that is wall time since its start times time_scale.
+    Times are the ROS clock's: simulated time, the stage's /clock, which also stamps joint_states (every
+    node of the demo runs with use_sim_time); a profile is a function of it. time_scale only turns
+    simulated seconds into wall-clock timeouts.
     """
 
     def __init__(self, node: object, settings: EndToEndSettings) -> None:
@@ -135,7 +136,7 @@ class StageSession:
         with self._lock:
             profile, start = self.profile, self.profile_start_s
         if profile is not None:
-            self.setpoint_pub.publish(self._float(data=float(profile((self.now_s() - start) * self.time_scale))))
+            self.setpoint_pub.publish(self._float(data=float(profile(self.now_s() - start))))
 
     def on_state(self, message: object) -> None:
         """Record the stage position [m] at its header stamp [s]."""
@@ -171,9 +172,10 @@ class StageSession:
         with self._lock:
             self.profile_start_s = start = self.now_s()
             self.profile = profile
-        stop = start + simulated_s / self.time_scale
+        stop = start + simulated_s
         try:
-            wait_for(lambda: self.now_s() >= stop, simulated_s / self.time_scale + 10.0, "the end of a run", check)
+            wait_for(lambda: self.now_s() >= stop, 3.0 * simulated_s / self.time_scale + 10.0, "the end of a run",
+                     check)
         finally:
             with self._lock:
                 self.profile = None
@@ -211,8 +213,8 @@ def tracking_run(session: StageSession, name: str, stroke: tuple[float, float], 
     lead_s = 2.0 * settings.settle_s
     session.prime(profile(0.0), settings.ready_timeout_s, check)
     start = session.drive(profile, lead_s + settings.run_s, check)
-    stamps, position = session.states_between(start, start + settings.wall_s(lead_s + settings.run_s))
-    t = (stamps - start) * settings.time_scale
+    stamps, position = session.states_between(start, start + lead_s + settings.run_s)
+    t = stamps - start
     setpoint = np.array([profile(value) for value in t])
     error = (position - setpoint)[t >= lead_s]
     scale = 100.0 / (high - low)
@@ -221,15 +223,17 @@ def tracking_run(session: StageSession, name: str, stroke: tuple[float, float], 
 
 
 def node_parameters(settings: EndToEndSettings, work_dir: Path) -> dict[str, dict[str, object]]:
-    """Overrides of config/<node>.yaml: the stage sped up by time_scale, the excitation paced to match."""
+    """Overrides of config/<node>.yaml: the stage sped up by time_scale, every node on its simulated /clock
+    (so the identification, the lead and the PI loop count simulated seconds)."""
     return {
-        "stage_node": {"rate_hz": settings.rate_hz, "time_scale": settings.time_scale, "command_timeout": 2.0},
-        "compensator_node": {"rate_hz": 50.0, "feedback": False},
-        "identification_node": {"operators": settings.operators,
+        "stage_node": {"rate_hz": settings.rate_hz, "time_scale": settings.time_scale, "command_timeout": 2.0,
+                       "use_sim_time": True},
+        "compensator_node": {"rate_hz": 50.0, "feedback": False, "use_sim_time": True},
+        "identification_node": {"operators": settings.operators, "use_sim_time": True,
                                 "model_file": str(work_dir / "identified_model.yaml"),
                                 "excite_duration": settings.excite_duration_s,
                                 "excite_period": settings.excite_period_s,
-                                "excite_time_scale": settings.time_scale, "excite_rate_hz": settings.rate_hz,
+                                "excite_rate_hz": settings.rate_hz / settings.time_scale,
                                 "record_bag": str(work_dir / "session_bag"), "bag_overwrite": True},
     }
 
@@ -239,11 +243,18 @@ def excite_and_refit(client: object, session: StageSession, settings: EndToEndSe
     """~/excite, wait for its end, ~/refit: the JSON report and the stroke measured meanwhile [m]."""
     from sma_stage.nodes.launch import wait_for
 
-    start = session.now_s()
-    ok, message = client.trigger("identification/excite")
+
+    deadline = time.monotonic() + settings.ready_timeout_s
+    while True:
+        start = session.now_s()
+        ok, message = client.trigger("identification/excite")
+        if ok or "no /clock" not in message or time.monotonic() > deadline:
+            break
+        check()
+        time.sleep(0.1)
     if not ok:
         raise InputError(f"~/excite refused: {message}")
-    stop = start + settings.wall_s(settings.excite_duration_s)
+    stop = start + settings.excite_duration_s
     wait_for(lambda: session.now_s() >= stop, settings.wall_timeout_s(settings.excite_duration_s),
              "the end of the excitation", check)
     _, positions = session.states_between(start, stop)
@@ -284,7 +295,7 @@ def track_with_both_models(client: object, session: StageSession, stroke: tuple[
                            identified: bool) -> dict[str, TrackingRun]:
     """Tracking runs with the model ~/refit pushed (when it did), then with the default model reloaded
     from its file; each feedforward and with the PI loop (ki scaled to the wall clock the node runs on)."""
-    pi = {"feedback": True, "kp": PI_GAINS["kp"], "ki": PI_GAINS["ki_per_simulated_s"] * settings.time_scale}
+    pi = {"feedback": True, "kp": PI_GAINS["kp"], "ki": PI_GAINS["ki_per_simulated_s"]}
     runs = {}
     if identified:
         runs["identified, feedforward"] = tracking_run(session, "identified model, feedforward", stroke, settings,
@@ -340,7 +351,7 @@ def run_end_to_end(nodes: object, settings: EndToEndSettings, out_dir: Path, lau
     """With the nodes started: excite, refit, track with the identified and the default model, stop them."""
     from sma_stage.nodes.launch import RosClient, wait_for
 
-    with RosClient(nodes.domain_id, "sma_demo") as client:
+    with RosClient(nodes.domain_id, "sma_demo", use_sim_time=True) as client:
         session = StageSession(client.node, settings)
         client.wait_for_services(["stage/stop", "compensator/reload", "identification/refit"],
                                  settings.ready_timeout_s, nodes.check_running)
