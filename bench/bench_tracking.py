@@ -10,7 +10,9 @@ follows the validation signal scaled to STROKE_FRACTION of the stroke measured d
 (after SETTLE_S at the bottom of the range and SETTLE_S at the signal's first value, as the demo does),
 commanded by sma_stage.control.Compensator every CONTROL_STEP_S (--control-step-s), each model
 feedforward and with the PI loop (the same gains for all). Errors: the measured
-position after each step against the setpoint at that time, over the signal, in % of the stroke.
+position after each step against the setpoint at that time, over the signal, in % of the stroke; and
+how smooth the current is: its change from one command to the next (RMS and 99th percentile over the
+signal) in % of the current limit.
 
     .venv/bin/python bench/bench_tracking.py           # the table
     .venv/bin/python bench/bench_tracking.py --scan    # also the PI gain scan that chose the gains
@@ -117,23 +119,26 @@ def compensator_for(mode: Mode) -> Compensator:
     return Compensator(mode.model.model, MAX_CURRENT_A, kp=mode.kp, ki=mode.ki)
 
 
-def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[float, float]:
+def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[float, float, float, float]:
     """(RMS, max) tracking error [% of the stroke] over the validation signal, commands every
-    control_step_s [s]."""
+    control_step_s [s], and the current's sample-to-sample change over it (RMS, 99th percentile) [% of
+    MAX_CURRENT_A]."""
     compensator = compensator_for(mode)
     stage = StageSimulator(seed=TRACKING_SEED)
     steps = int(round((2.0 * SETTLE_S + RUN_S) / control_step_s))
     times = control_step_s * np.arange(steps + 1)
     wanted = setpoints(identified.stroke_m, times)
-    measured = np.empty(steps)
+    measured, currents = np.empty(steps), np.empty(steps)
     position = stage.state.measured_position_m
     for k in range(steps):
-        current = compensator.command(wanted[k], position if mode.feedback else None, control_step_s)
-        position = stage.step(current, control_step_s).measured_position_m
+        currents[k] = compensator.command(wanted[k], position if mode.feedback else None, control_step_s)
+        position = stage.step(currents[k], control_step_s).measured_position_m
         measured[k] = position
     on_signal = times[1:] >= 2.0 * SETTLE_S
     error = 100.0 * (measured - wanted[1:])[on_signal] / np.ptp(identified.stroke_m)
-    return float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error)))
+    change = 100.0 * np.abs(np.diff(currents[on_signal])) / MAX_CURRENT_A
+    return (float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error))), float(np.sqrt(np.mean(change**2))),
+            float(np.percentile(change, 99)))
 
 
 def modes(identified: Identified) -> list[Mode]:
@@ -154,16 +159,17 @@ def print_identification(identified: Identified) -> None:
 
 def print_table(identified: Identified, control_step_s: float) -> dict[bool, float]:
     """Track in every mode and print the table; the best RMS [%] without and with the PI loop."""
-    print("\n| mode | RMS % of stroke | max % of stroke | target RMS % | result | seconds |")
-    print("|---|---|---|---|---|---|")
+    print("\n| mode | RMS % of stroke | max % of stroke | target RMS % | result | current step RMS % | "
+          "current step p99 % | seconds |")
+    print("|---|---|---|---|---|---|---|---|")
     best = {False: np.inf, True: np.inf}
     for mode in modes(identified):
         started = time.perf_counter()
-        rms, peak = track(identified, mode, control_step_s)
+        rms, peak, step_rms, step_p99 = track(identified, mode, control_step_s)
         target = TARGETS_PCT[mode.feedback]
         best[mode.feedback] = min(best[mode.feedback], rms)
         print(f"| {mode.name} | {rms:.3f} | {peak:.3f} | {target:g} | {'pass' if rms <= target else 'FAIL'} "
-              f"| {time.perf_counter() - started:.1f} |", flush=True)
+              f"| {step_rms:.2f} | {step_p99:.2f} | {time.perf_counter() - started:.1f} |", flush=True)
     return best
 
 
@@ -174,7 +180,7 @@ def print_scan(identified: Identified, control_step_s: float) -> None:
         print("| kp \\ ki [1/s] | " + " | ".join(f"{ki:g}" for ki in SCAN_KI) + " |")
         print("|---|" + "---|" * len(SCAN_KI))
         for kp in SCAN_KP:
-            cells = [track(identified, Mode(model, True, kp, ki), control_step_s) for ki in SCAN_KI]
+            cells = [track(identified, Mode(model, True, kp, ki), control_step_s)[:2] for ki in SCAN_KI]
             print(f"| {kp:g} | " + " | ".join(f"{rms:.3f} ({peak:.2f})" for rms, peak in cells) + " |", flush=True)
 
 
