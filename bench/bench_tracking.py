@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sma_stage.control import Compensator
+from sma_stage.control.compensator import imc_gains
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import make_series
 from sma_stage.model import IdentifiedModel
@@ -43,7 +44,6 @@ RUN_S = 1000.0
 IDENTIFICATION_SEED = 0
 TRACKING_SEED = 1
 TARGETS_PCT = {False: 3.0, True: 0.5}  # RMS % of the stroke: feedforward, PI loop
-PI_GAINS = (2.0, 4.0)  # kp [m/m], ki [1/s]: from the scan (--scan), the same for every model
 SCAN_KP = (0.0, 0.5, 1.0, 2.0, 4.0)
 SCAN_KI = (0.3, 1.0, 2.0, 4.0, 8.0)
 
@@ -78,7 +78,7 @@ class Mode:
     @property
     def name(self) -> str:
         """How the table names it."""
-        loop = f"PI kp {self.kp:g} ki {self.ki:g}/s" if self.feedback else "feedforward"
+        loop = f"PI kp {self.kp:.3g} ki {self.ki:.3g}/s" if self.feedback else "feedforward"
         return f"{self.model.name}, {loop}"
 
 
@@ -141,10 +141,11 @@ def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[fl
             float(np.percentile(change, 99)))
 
 
-def modes(identified: Identified) -> list[Mode]:
-    """The table's modes: every model feedforward, then every model with the PI loop at PI_GAINS."""
+def modes(identified: Identified, control_step_s: float) -> list[Mode]:
+    """The table's modes: every model feedforward, then every model with the PI loop at the gains the
+    compensator derives from it (imc_gains, the compensator node's default)."""
     return ([Mode(model, False) for model in identified.models]
-            + [Mode(model, True, *PI_GAINS) for model in identified.models])
+            + [Mode(model, True, **imc_gains(model.model, control_step_s)) for model in identified.models])
 
 
 def print_identification(identified: Identified) -> None:
@@ -163,7 +164,7 @@ def print_table(identified: Identified, control_step_s: float) -> dict[bool, flo
           "current step p99 % | seconds |")
     print("|---|---|---|---|---|---|---|---|")
     best = {False: np.inf, True: np.inf}
-    for mode in modes(identified):
+    for mode in modes(identified, control_step_s):
         started = time.perf_counter()
         rms, peak, step_rms, step_p99 = track(identified, mode, control_step_s)
         target = TARGETS_PCT[mode.feedback]

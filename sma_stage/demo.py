@@ -86,7 +86,9 @@ class EndToEndSettings:
 @dataclass(frozen=True)
 class TrackingRun:
     """One tracking run: time [s simulated, 0 where the signal starts, negative while settling], setpoint and
-    measured position [m], the last current command [A] at each sample; errors [% of stroke] for t >= 0."""
+    measured position [m], the last current command [A] at each sample; errors [% of stroke] for t >= 0;
+    the change of current_cmd from one message to the next over t >= 0 (RMS, 99th percentile) [% of
+    MAX_CURRENT_A]."""
 
     name: str
     t: np.ndarray
@@ -95,6 +97,8 @@ class TrackingRun:
     current: np.ndarray
     rms_pct: float
     max_pct: float
+    current_step_rms_pct: float = float("nan")
+    current_step_p99_pct: float = float("nan")
 
 
 class StageSession:
@@ -157,6 +161,13 @@ class StageSession:
         kept = (stamps >= start_s) & (stamps <= stop_s)
         return stamps[kept], positions[kept]
 
+    def commands_between(self, start_s: float, stop_s: float) -> np.ndarray:
+        """The current commands [A] received with start_s <= arrival <= stop_s, in order."""
+        with self._lock:
+            commands = np.array(self.commands).reshape(-1, 2)
+        kept = (commands[:, 0] >= start_s) & (commands[:, 0] <= stop_s)
+        return commands[kept, 1]
+
     def commands_at(self, times_s: np.ndarray) -> np.ndarray:
         """The last current command [A] received at or before each time [s] (NaN before the first)."""
         with self._lock:
@@ -218,8 +229,19 @@ def tracking_run(session: StageSession, name: str, stroke: tuple[float, float], 
     setpoint = np.array([profile(value) for value in t])
     error = (position - setpoint)[t >= lead_s]
     scale = 100.0 / (high - low)
+    steps = current_steps_pct(session.commands_between(start + lead_s, start + lead_s + settings.run_s))
     return TrackingRun(name, t - lead_s, setpoint, position, session.commands_at(stamps),
-                       float(scale * np.sqrt(np.mean(error**2))), float(scale * np.max(np.abs(error))))
+                       float(scale * np.sqrt(np.mean(error**2))), float(scale * np.max(np.abs(error))),
+                       *steps)
+
+
+def current_steps_pct(commands: np.ndarray) -> tuple[float, float]:
+    """(RMS, 99th percentile) of the change of the current from one command to the next [% of
+    MAX_CURRENT_A] (NaN with fewer than two commands)."""
+    if commands.size < 2:
+        return float("nan"), float("nan")
+    change = 100.0 * np.abs(np.diff(commands)) / MAX_CURRENT_A
+    return float(np.sqrt(np.mean(change**2))), float(np.percentile(change, 99))
 
 
 def node_parameters(settings: EndToEndSettings, work_dir: Path) -> dict[str, dict[str, object]]:
@@ -284,18 +306,15 @@ def describe_diagnosis(report: dict) -> str:
 
 
 RUN_ORDER = ("default, feedforward", "identified, feedforward", "default, PI loop", "identified, PI loop")
-# Not config/compensator.yaml's 2 and 4/s (bench/bench_tracking.py, 10 Hz in process): at 100x on wall time
-# the loop acts on ~1 s simulated steps with transport delays, where those gains oscillated (identified
-# model 5.54 % RMS against 1.78 % with these, one demo run each).
-PI_GAINS = {"kp": 1.0, "ki_per_simulated_s": 0.1}
 
 
 def track_with_both_models(client: object, session: StageSession, stroke: tuple[float, float],
                            settings: EndToEndSettings, check: Callable[[], None],
                            identified: bool) -> dict[str, TrackingRun]:
     """Tracking runs with the model ~/refit pushed (when it did), then with the default model reloaded
-    from its file; each feedforward and with the PI loop (ki scaled to the wall clock the node runs on)."""
-    pi = {"feedback": True, "kp": PI_GAINS["kp"], "ki": PI_GAINS["ki_per_simulated_s"]}
+    from its file; each feedforward and with the PI loop at the gains the compensator derives from the model
+    (its default tuning)."""
+    pi = {"feedback": True}
     runs = {}
     if identified:
         runs["identified, feedforward"] = tracking_run(session, "identified model, feedforward", stroke, settings,
@@ -419,16 +438,18 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
           f"{'holds' if result['compensator_holds_fit'] else 'does NOT hold'} the fitted parameters")
     print(f"   measured stroke {1e6 * low:.1f} to {1e6 * high:.1f} um; the paper's validation signal scaled to "
           f"{100 * settings.stroke_fraction:g} % of it, {settings.run_s:g} s, through the exact inverse alone "
-          f"(feedforward) and with the PI loop (kp {PI_GAINS['kp']:g}, ki {PI_GAINS['ki_per_simulated_s']:g}/s); "
-          f"error in % of the stroke, plots in {out_dir / 'tracking.png'}:")
-    print(f"   {'compensator model, mode':40s} {'rms %':>8s} {'max %':>8s}")
+          f"(feedforward) and with the PI loop (the compensator's default: gains derived from the model); error "
+          f"in % of the stroke, current_cmd's change from one message to the next in % of {MAX_CURRENT_A:g} A, "
+          f"plots in {out_dir / 'tracking.png'}:")
+    print(f"   {'compensator model, mode':40s} {'rms %':>8s} {'max %':>8s} {'step rms %':>11s} {'step p99 %':>11s}")
     for key in RUN_ORDER:
         run = result["runs"].get(key)
         if run is None:
             print(f"   {key:40s} not run: {report['compensator']['message']}")
         else:
             still = np.ptp(run.current[np.isfinite(run.current)]) == 0.0
-            print(f"   {key:40s} {run.rms_pct:8.2f} {run.max_pct:8.2f}"
+            print(f"   {key:40s} {run.rms_pct:8.2f} {run.max_pct:8.2f} {run.current_step_rms_pct:11.2f} "
+                  f"{run.current_step_p99_pct:11.2f}"
                   + (f"   (current_cmd stayed at {run.current[-1]:g} A throughout)" if still else ""))
     print(f"   wall time from the nodes' launch to their exit: {seconds['total']:.1f} s")
 

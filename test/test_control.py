@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from sma_stage.control import Compensator
+from sma_stage.control.compensator import imc_gains
 from sma_stage.demo import DEFAULT_MODEL
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
@@ -14,6 +15,7 @@ from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, Identifi
 SHIPPED = load_model_file(DEFAULT_MODEL)
 MODEL = IdentifiedModel(SHIPPED.parameters, SHIPPED.operators)  # its GPI, without the shipped lag
 LIMIT_A = 5.0
+UNLIMITED = 1e12  # a lead limit no step reaches: the exact lead
 
 
 def inverse_stream(method: str = "exact", limit_a: float = LIMIT_A) -> GPIInverseStream:
@@ -43,7 +45,7 @@ def lag_input(current_a: float, joule_reference_a: float) -> float:
 def test_the_lead_undoes_a_first_order_lag_exactly(joule_reference_a):
     tau_s, dt_s = 8.0, 0.2
     setpoints = slow_setpoints(3000, dt_s)
-    core = Compensator(lagged(tau_s, joule_reference_a), LIMIT_A)
+    core = Compensator(lagged(tau_s, joule_reference_a), LIMIT_A, lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
     reach = core.inverse.input_range  # the lag's drive: the Joule heating's range in the heating reading
     wanted = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=reach).run(setpoints)[0]
     kept = math.exp(-dt_s / tau_s)
@@ -63,7 +65,7 @@ def test_the_lead_tends_to_v_plus_tau_dv_dt_for_short_steps():
     tau_s, dt_s = 8.0, 0.001
     setpoints = slow_setpoints(20000, dt_s)[10000:]
     wanted = inverse_stream().run(setpoints)[0]
-    core = Compensator(lagged(tau_s), LIMIT_A)
+    core = Compensator(lagged(tau_s), LIMIT_A, lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
     currents = np.array([core.command(setpoint, None, dt_s) for setpoint in setpoints])
     expected = wanted[1:] + tau_s * np.diff(wanted) / dt_s
     settled = slice(6000, None)  # the lag starts idle, at 0 A: 6 s to catch up at the current limit
@@ -91,7 +93,7 @@ def test_anti_windup_stops_the_integral_while_the_command_saturates():
 
 
 def test_anti_windup_also_holds_when_the_lead_saturates():
-    core = Compensator(lagged(50.0), LIMIT_A, ki=1.0)
+    core = Compensator(lagged(50.0), LIMIT_A, ki=1.0, max_rate_a_per_s=0.0)
     core.command(0.0, 0.0, 0.1)
     assert core.command(3e-4, 0.0, 0.1) == LIMIT_A and core.saturated == 1
     wound = core.integral_m
@@ -102,7 +104,7 @@ def test_anti_windup_also_holds_when_the_lead_saturates():
 def test_pi_removes_a_constant_offset_of_the_plant():
     offset_m, dt_s = 3e-5, 0.1
     plant = GPIForwardStream(MODEL.parameters, MODEL.operators)
-    core = Compensator(MODEL, LIMIT_A, kp=0.5, ki=2.0)
+    core = Compensator(MODEL, LIMIT_A, kp=0.5, ki=2.0, max_rate_a_per_s=0.0)
     position = plant.step(0.0) + offset_m
     for _ in range(600):
         position = plant.step(core.command(1e-4, position, dt_s)) + offset_m
@@ -117,6 +119,8 @@ def test_pi_removes_a_constant_offset_of_the_plant():
     (lambda core: setattr(core, "ki", float("nan")), "ki"),
     (lambda core: Compensator(MODEL, LIMIT_A, kp=-2.0), "kp"),
     (lambda core: Compensator(MODEL, -1.0), "max_current_a"),
+    (lambda core: Compensator(MODEL, LIMIT_A, lead_limit=0.5), "lead_limit"),
+    (lambda core: setattr(core, "deadband_m", -1e-6), "deadband_m"),
     (lambda core: Compensator("not a model"), "IdentifiedModel"),
     (lambda core: core.set_model(IdentifiedModel(MODEL.parameters.replace(output_unit="mm"), MODEL.operators)),
      "output unit"),
@@ -138,7 +142,8 @@ def test_a_refused_model_leaves_the_model_in_force():
 
 def test_the_drift_is_taken_off_the_target_as_the_model_runs_on():
     drift = Effect("drift", {"drift_m_per_s": 2e-7})
-    plain, drifting = Compensator(MODEL, LIMIT_A), Compensator(with_effects(drift), LIMIT_A)
+    plain, drifting = (Compensator(MODEL, LIMIT_A, max_rate_a_per_s=0.0),
+                       Compensator(with_effects(drift), LIMIT_A, max_rate_a_per_s=0.0))
     reference = inverse_stream()
     for step in range(1, 301):
         command = drifting.command(1e-4, None, 1.0)
@@ -157,3 +162,43 @@ def test_the_model_runs_on_from_the_state_it_carries():
     assert np.array_equal(carried.inverse.states, np.array(state.operators)) and np.any(carried.inverse.states)
     fresh = Compensator(model, LIMIT_A)
     assert fresh.lag_state_a == 0.0 and not np.any(fresh.inverse.states)
+
+
+def test_the_lead_limit_bounds_the_lead_and_the_lag_then_follows_with_tau_over_the_limit():
+    tau_s, dt_s, limit = 10.0, 0.1, 3.0
+    core = Compensator(lagged(tau_s), LIMIT_A, lead_limit=limit, max_rate_a_per_s=0.0)
+    core.command(0.0, None, 0.0)
+    target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
+    current = core.command(1e-4, None, dt_s)
+    assert current == pytest.approx(limit * target, rel=1e-12), "s + g (v* - s) from s = 0, g at the limit"
+    states = []
+    for _ in range(400):
+        core.command(1e-4, None, dt_s)
+        states.append(core.lag_state_a)
+    gap = target - np.array(states)
+    rate = -np.log(gap[200] / gap[100]) / (100 * dt_s)  # the gap decays as exp(-t limit / tau)
+    assert rate == pytest.approx(limit / tau_s, rel=0.02)
+
+
+def test_the_loops_target_reverses_only_beyond_the_deadband():
+    core = Compensator(MODEL, LIMIT_A, kp=1.0, deadband_m=1e-6, max_rate_a_per_s=0.0)
+    first = core.command(1e-4, 1e-4, 0.1)
+    wiggles = [core.command(1e-4, 1e-4 + noise, 0.1) for noise in (0.8e-6, -0.8e-6, 0.5e-6, -0.9e-6)]
+    assert all(current == first for current in wiggles) and core.target_m == 1e-4, "noise does not reverse it"
+    assert core.command(1e-4, 1e-4 - 5e-6, 0.1) > first, "a real error moves the target on"
+
+
+def test_imc_gains_follow_the_identified_lag_and_the_control_period():
+    gains = imc_gains(lagged(9.0), 0.1, lead_limit=3.0)
+    assert gains == pytest.approx({"kp": 3.0 / 3.1, "ki": 1.0 / 3.1})
+    assert imc_gains(MODEL, 0.5) == {"kp": 0.0, "ki": 2.0}, "no lag: integral action over the dead time"
+    with pytest.raises(InputError, match="control_period_s"):
+        imc_gains(MODEL, 0.0)
+
+
+def test_the_current_changes_by_at_most_the_rate_limit_per_step():
+    core = Compensator(lagged(10.0), LIMIT_A, max_rate_a_per_s=1.0)
+    first = core.command(0.0, None, 0.0)
+    currents = [first] + [core.command(3e-4, None, 0.1) for _ in range(100)]
+    assert np.max(np.abs(np.diff(currents))) <= 0.1 + 1e-12
+    assert currents[-1] > currents[1] + 2.0, "it gets there, 0.1 A per 0.1 s step"

@@ -41,7 +41,8 @@ class Recorder:
 def start_system(nodes: NodeProcesses, model_file) -> None:
     nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0,
                                 "use_sim_time": True}, [CONFIG_DIR / "stage.yaml"])
-    nodes.start("compensator_node", {"rate_hz": 1.0, "use_sim_time": True}, [CONFIG_DIR / "compensator.yaml"])
+    nodes.start("compensator_node", {"rate_hz": 1.0, "use_sim_time": True, "feedback": False},
+                [CONFIG_DIR / "compensator.yaml"])
     nodes.start("identification_node", {"excite_duration": EXCITE_S, "excite_rate_hz": 1.0, "operators": 5,
                                          "min_samples": 60, "model_file": str(model_file), "use_sim_time": True},
                 [CONFIG_DIR / "identification.yaml"])
@@ -99,7 +100,7 @@ def test_executables_excite_refit_push_and_track(tmp_path):
             setpoint.publish(Float64(data=target))
             wait_for(lambda: len(seen.commands) > commands_before, 10.0, "a current command", nodes.check_running)
             assert abs(seen.commands[commands_before] - expected) <= 1e-12, "feedforward: the fitted model's inverse"
-            client.set_parameters("compensator", {"feedback": True, "kp": 1.0, "ki": 0.1})
+            client.set_parameters("compensator", {"feedback": True, "tuning": "manual", "kp": 1.0, "ki": 0.1})
 
             def close_to_target() -> bool:
                 setpoint.publish(Float64(data=target))

@@ -292,10 +292,11 @@ SETPOINTS_M = [0.0, 1e-4, 2.5e-4, 1.5e-4, -1e-4, -3e-4, 5e-5, 3e-4]
 
 
 def compensator_node(ros: Ros, **overrides) -> CompensatorNode:
-    """The compensator on the shipped model's GPI without its lag (so that its commands are the plain
-    inverse's), unless a test gives a model or model file."""
+    """The compensator on the shipped model's GPI without its lag, feedforward and without the rate limit
+    (so that its commands are the plain inverse's), unless a test says otherwise."""
     if "model" not in overrides and "model_file" not in overrides:
         overrides["model"] = IdentifiedModel(DEFAULT_PARAMS, OPERATORS).to_yaml_text()
+    overrides = {"feedback": False, "max_current_rate": 0.0, **overrides}
     params = [Parameter(name, value=value) for name, value in overrides.items()]
     return ros.add(CompensatorNode(context=ros.context, parameter_overrides=params))
 
@@ -394,7 +395,7 @@ def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
 
 
 def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gains(ros):
-    compensator = compensator_node(ros, rate_hz=2.0, kp=1.0, ki=0.1)
+    compensator = compensator_node(ros, rate_hz=2.0, tuning="manual", kp=1.0, ki=0.1)
     assert compensator.core.tau_s == 0.0
     lag = Effect("thermal_lag", {"tau_s": 11.0})
     assert compensator.set_parameters([Parameter("model", value=model_text(DEFAULT_PARAMS, OPERATORS, lag))])[0].successful
@@ -419,7 +420,8 @@ def test_compensator_refuses_a_missing_model_file_at_start(ros, tmp_path):
 
 
 def test_compensator_pi_integrates_the_error_with_anti_windup(ros):
-    compensator = compensator_node(ros, feedback=True, kp=0.0, ki=20.0, rate_hz=100.0, max_current=2.0)
+    compensator = compensator_node(ros, feedback=True, tuning="manual", kp=0.0, ki=20.0, rate_hz=100.0,
+                                  max_current=2.0)
     probe = CompensatorProbe(ros, compensator)
     feedforward = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, "exact", input_range=(-2.0, 2.0)).step(1e-4)
     probe.measure(0.0)
@@ -458,6 +460,13 @@ def test_compensator_default_model_is_the_shipped_model_file_identified_from_the
     compensator = ros.add(CompensatorNode(context=ros.context))
     assert compensator.model == load_model_file(REPO / "config" / "model_default.yaml")
     assert compensator.model.effect_names == ["thermal_lag"] and compensator.model.state is None
+    assert compensator.values["feedback"], "the default holds a setpoint: the PI loop is on"
+    tau = compensator.model.effect("thermal_lag").parameters["tau_s"]
+    assert compensator.core.kp == pytest.approx(tau / 3.0 / (tau / 3.0 + 1.0 / 50.0)), "IMC gains from the model"
+    lagless = IdentifiedModel(DEFAULT_PARAMS, OPERATORS).to_yaml_text()
+    assert compensator.set_parameters([Parameter("model", value=lagless)])[0].successful
+    assert compensator.core.kp == 0.0 and compensator.core.ki == pytest.approx(50.0), "the gains follow the model"
+    assert not compensator.set_parameters([Parameter("tuning", value="fast")])[0].successful
 
 
 # --- identification ------------------------------------------------------------------------------
@@ -712,7 +721,8 @@ def test_identification_record_bag_can_be_switched_while_running(ros, tmp_path):
 
 def test_compensator_pi_loop_settles_the_simulated_stage_on_sim_time(ros):
     stage = stage_node(ros, rate_hz=100.0, time_scale=100.0, use_sim_time=True, command_timeout=5.0)
-    compensator = compensator_node(ros, feedback=True, rate_hz=100.0, use_sim_time=True)
+    compensator = compensator_node(ros, model_file=str(DEFAULT_MODEL_FILE), feedback=True, rate_hz=100.0,
+                                   max_current_rate=1.0, use_sim_time=True)  # the node's defaults
     probe = ros.probe()
     positions = Listener(probe, JointState, "joint_states", STATE_SUBSCRIBE_QOS)
     setpoint_pub = probe.create_publisher(Float64, "setpoint", COMMAND_QOS)
@@ -726,7 +736,8 @@ def test_compensator_pi_loop_settles_the_simulated_stage_on_sim_time(ros):
 
     setpoint_pub.publish(Float64(data=target))
     wait_until(settled, 20.0, f"the stage to settle at {target} m")
-    assert stage.state.time_s > 50.0, "the loop ran on simulated time"
+    clock_s = compensator.get_clock().now().nanoseconds * 1e-9
+    assert 20.0 <= clock_s < 1e6, f"the loop ran on the stage's simulated time (compensator clock {clock_s} s)"
     assert abs(compensator.integral_m) > 1e-6, "the integral corrected the feedforward model's error"
 
 

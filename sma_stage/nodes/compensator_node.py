@@ -8,8 +8,12 @@ the same YAML text, what `~/refit` pushes in one atomic change); with both empty
 config/model_default.yaml. A new model is checked whole and refused whole (the old one stays in force).
 
 Control law: target = setpoint + kp e + integral(ki e dt), e = setpoint - measured position [m]
-(feedback only; target = setpoint otherwise); the model's inverse gives the current, with the lead that
-undoes a thermal lag and the drift's offset taken off (see sma_stage.control.compensator). The integral
+(feedback only, the default; target = setpoint otherwise), through a play of half-width deadband; the
+model's inverse gives the current, with the lead that undoes a thermal lag (its gain at most
+lead_limit) and the drift's offset taken off, rate-limited to max_current_rate (see
+sma_stage.control.compensator). With tuning `imc` (the default) kp and ki are derived from the model in
+force (its lag, lead_limit and the control period 1/rate_hz: control.compensator.imc_gains) and follow
+every new model; with `manual` the kp and ki parameters are used. The integral
 and the lead run on the node clock (simulated time with use_sim_time); the integral stops while the
 command saturates in the direction of the error (anti-windup). A command is published on each setpoint
 and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog): computed again in
@@ -30,7 +34,13 @@ from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from sma_stage.control import Compensator
-from sma_stage.control.compensator import GAIN_PARAMETERS, checked_gains
+from sma_stage.control.compensator import (
+    DEFAULT_DEADBAND_M,
+    DEFAULT_LEAD_LIMIT,
+    DEFAULT_MAX_RATE_A_PER_S,
+    checked_gains,
+    imc_gains,
+)
 from sma_stage.errors import InputError
 from sma_stage.io.rosbag_io import joint_index
 from sma_stage.model import IdentifiedModel, load_model_file
@@ -51,6 +61,9 @@ from sma_stage.nodes.launch import CONFIG_DIR
 DEFAULT_MODEL_FILE = CONFIG_DIR / "model_default.yaml"
 MODEL_SOURCES = ("model_file", "model")
 REBUILD_PARAMETERS = (*MODEL_SOURCES, "inverse_method", "max_current")
+TUNINGS = ("imc", "manual")
+PERIOD_SMOOTHING = 0.1  # weight of a new interval in the running mean of the control period
+PERIOD_TOLERANCE = 0.2  # the imc gains are derived again when the period moved by more than this fraction
 
 COMPENSATOR_PARAMS = [
     Param("model_file", "", "model file (YAML from gpi_tool fit/diagnose or ~/refit); empty: the shipped default "
@@ -58,9 +71,15 @@ COMPENSATOR_PARAMS = [
     Param("model", "", "the whole identified model as model-file YAML text (what ~/refit pushes); empty: none"),
     Param("inverse_method", "exact", f"inverse of the model's GPI: {' or '.join(METHODS)}"),
     Param("max_current", 5.0, "current limit [A]: the inverse searches within +-max_current", 0.001, 20.0),
-    Param("feedback", False, "close a PI loop on the measured position from joint_states"),
-    Param("kp", 1.0, "proportional gain on the position error [m/m] (feedback mode)", 0.0, 100.0),
-    Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (feedback mode)", 0.0, 10000.0),
+    Param("feedback", True, "close a PI loop on the measured position from joint_states"),
+    Param("tuning", "imc", "PI gains: 'imc' (derived from the model in force and rate_hz) or 'manual' (kp, ki)"),
+    Param("kp", 1.0, "proportional gain on the position error [m/m] (tuning manual)", 0.0, 100.0),
+    Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (tuning manual)", 0.0, 10000.0),
+    Param("lead_limit", DEFAULT_LEAD_LIMIT, "largest gain of the thermal-lag lead [A/A]", 1.0, 1e6),
+    Param("deadband", DEFAULT_DEADBAND_M, "half-width of the play on the loop's target [m] (a few sensor noise "
+          "sigmas)", 0.0, 1e-2),
+    Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of node-clock time]; "
+          "0: no limit", 0.0, 1e6),
     Param("rate_hz", 50.0, "command republication and PI loop rate [Hz]", 0.1, 2000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
@@ -89,9 +108,9 @@ class CompensatorNode(Node):
         self._lock = threading.RLock()
         try:
             self.values = declare_all(self, COMPENSATOR_PARAMS)
+            self.period_estimate_s = self.tuned_period_s = 1.0 / float(self.values["rate_hz"])
             model, self.model_source = model_from(self.values)
-            self.core = Compensator(model, float(self.values["max_current"]), str(self.values["inverse_method"]),
-                                    **self.gains(self.values))
+            self.core = self.build_core(model, self.values)
         except InputError as error:
             self.destroy_node()
             raise InputError(f"node 'compensator': {error}") from None
@@ -110,10 +129,22 @@ class CompensatorNode(Node):
         self.create_timer(self.period_s, self.on_tick, clock=self.steady)
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
 
-    @staticmethod
-    def gains(values: dict[str, object]) -> dict[str, float]:
-        """The control core's gains from the node's parameter values (InputError when one is unusable)."""
-        return checked_gains(**{name: values[name] for name in GAIN_PARAMETERS})
+    def settings(self, model: IdentifiedModel, values: dict[str, object]) -> dict[str, float]:
+        """The control core's loop settings from the node's parameter values and the model (InputError when
+        one is unusable): kp and ki (derived or manual), lead limit, deadband, rate limit."""
+        if values["tuning"] not in TUNINGS:
+            raise InputError(f"tuning must be one of {', '.join(TUNINGS)}, got {values['tuning']!r}")
+        if values["tuning"] == "imc":
+            gains = imc_gains(model, self.tuned_period_s, float(values["lead_limit"]))
+        else:
+            gains = checked_gains(values["kp"], values["ki"])
+        return {**gains, "lead_limit": float(values["lead_limit"]), "deadband_m": float(values["deadband"]),
+                "max_rate_a_per_s": float(values["max_current_rate"])}
+
+    def build_core(self, model: IdentifiedModel, values: dict[str, object]) -> Compensator:
+        """A control core for the model with the node's settings (InputError when either is unusable)."""
+        return Compensator(model, float(values["max_current"]), str(values["inverse_method"]),
+                           **self.settings(model, values))
 
     @property
     def model(self) -> IdentifiedModel:
@@ -138,8 +169,10 @@ class CompensatorNode(Node):
     def describe_model(self) -> str:
         """One line naming the model in force."""
         effects = " + ".join(self.model.effect_names) or "no effect"
+        loop = (f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s ({self.values['tuning']})"
+                if self.values["feedback"] else "feedforward")
         return (f"{self.inverse.method} inverse of a {self.model.operators}-operator GPI with {effects} from "
-                f"{self.model_source}, feedback {'on' if self.values['feedback'] else 'off'}")
+                f"{self.model_source}, {loop}")
 
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         """Validate a parameter change as a whole; swap in the new model when it changed."""
@@ -147,11 +180,12 @@ class CompensatorNode(Node):
         names = {change.name for change in changes}
         rebuild = bool(names & set(REBUILD_PARAMETERS))
         try:
-            gains = self.gains(candidate)
             if rebuild:
                 changed = next((name for name in MODEL_SOURCES if name in names), None)
                 model, source = model_from(candidate, changed)
-                core = Compensator(model, float(candidate["max_current"]), str(candidate["inverse_method"]), **gains)
+                core = self.build_core(model, candidate)
+            else:
+                settings = self.settings(self.model, candidate)
         except InputError as error:
             return SetParametersResult(successful=False, reason=str(error))
         with self._lock:
@@ -159,7 +193,7 @@ class CompensatorNode(Node):
             if rebuild:
                 self.core, self.model_source = core, source
             else:
-                for name, value in gains.items():
+                for name, value in settings.items():
                     setattr(self.core, name, value)
         if rebuild:
             self.get_logger().info(f"model updated: {self.describe_model()}")
@@ -171,9 +205,7 @@ class CompensatorNode(Node):
         response.success, response.message = False, "parameter model_file is empty: nothing to reload"
         if path:
             try:
-                model = load_model_file(path)
-                core = Compensator(model, float(self.values["max_current"]), str(self.values["inverse_method"]),
-                                   **self.gains(self.values))
+                core = self.build_core(load_model_file(path), self.values)
             except InputError as error:
                 response.message = str(error)
             else:
@@ -213,6 +245,19 @@ class CompensatorNode(Node):
             else:
                 self.publish_command(self.command_a)
 
+    def follow_control_period(self, dt_s: float) -> None:
+        """Keep a running mean of the node-clock time between commands [s] (with use_sim_time, simulated
+        seconds: 1/rate_hz of wall time times the stage's time_scale); with tuning imc, derive the gains
+        again when it has moved by more than PERIOD_TOLERANCE from the period they were derived for."""
+        self.period_estimate_s += PERIOD_SMOOTHING * (min(dt_s, 10.0 * self.period_estimate_s) - self.period_estimate_s)
+        if self.values["tuning"] != "imc" or abs(self.period_estimate_s / self.tuned_period_s - 1.0) <= PERIOD_TOLERANCE:
+            return
+        self.tuned_period_s = self.period_estimate_s
+        for name, value in imc_gains(self.model, self.tuned_period_s, self.core.lead_limit).items():
+            setattr(self.core, name, value)
+        self.get_logger().info(f"control period {self.tuned_period_s:.3g} s of node-clock time: "
+                               f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s (imc)")
+
     def elapsed_s(self) -> float:
         """Node-clock seconds since the previous command computed, 0 for the first (simulated time with
         use_sim_time)."""
@@ -224,6 +269,8 @@ class CompensatorNode(Node):
 
     def compute_command(self, dt_s: float) -> float:
         """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral, lead's rate)."""
+        if dt_s > 0.0:
+            self.follow_control_period(dt_s)
         measured = self.measured_m if self.values["feedback"] else None
         current = self.core.command(self.setpoint_m, measured, dt_s)
         if self.inverse.last_clipped:
