@@ -650,6 +650,33 @@ def test_identification_refit_without_a_compensator_warns_in_the_report(ros, tmp
     assert report["model_file"] is None and report["identified_model"]["operators"] == 5
 
 
+def test_the_compensator_keeps_silent_while_the_excitation_owns_current_cmd(ros):
+    compensator = compensator_node(ros, rate_hz=50.0)
+    identification = identification_node(ros, excite_period=1.0, excite_duration=5.0, excite_rate_hz=50.0,
+                                         push_timeout=2.0)
+    probe = CompensatorProbe(ros, compensator)
+    published = []
+    real_publish = compensator.publish_command
+    compensator.publish_command = lambda current: (published.append(current), real_publish(current))
+    wait_until(lambda: identification.push_client.service_is_ready(), 5.0, "the compensator's parameter service")
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: len(published) >= 5, 5.0, "the compensator republishing its command")
+    assert ros.call(probe.node, Trigger, "identification/excite").success
+    wait_until(lambda: not compensator.values["enabled"], 5.0, "the compensator to be paused")
+    silent_from = len(published)
+    time.sleep(0.5)
+    assert len(published) == silent_from, "the compensator published while the excitation ran"
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    time.sleep(0.2)
+    assert len(published) == silent_from and compensator.setpoint_m is None, "a setpoint is ignored meanwhile"
+    wait_until(lambda: not identification.exciting, 10.0, "the excitation to end")
+    wait_until(lambda: compensator.values["enabled"], 5.0, "the compensator to be enabled again")
+    time.sleep(0.2)
+    assert len(published) == silent_from, "enabled again, it waits for a new setpoint"
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: len(published) > silent_from, 5.0, "a command for the new setpoint")
+
+
 def test_identification_excite_runs_once_at_a_time_and_drives_current_cmd(ros):
     identification = identification_node(ros, excite_period=1.0, excite_duration=30.0, excite_rate_hz=100.0)
     probe = ros.probe()

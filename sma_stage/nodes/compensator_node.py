@@ -71,6 +71,8 @@ COMPENSATOR_PARAMS = [
     Param("model", "", "the whole identified model as model-file YAML text (what ~/refit pushes); empty: none"),
     Param("inverse_method", "exact", f"inverse of the model's GPI: {' or '.join(METHODS)}"),
     Param("max_current", 5.0, "current limit [A]: the inverse searches within +-max_current", 0.001, 20.0),
+    Param("enabled", True, "publish current_cmd; false: silent, another node owns the stage's command (the "
+          "identification node sets it while ~/excite drives the stage); a new setpoint is awaited when set true"),
     Param("feedback", True, "close a PI loop on the measured position from joint_states"),
     Param("tuning", "imc", "PI gains: 'imc' (derived from the model in force and rate_hz) or 'manual' (kp, ki)"),
     Param("kp", 1.0, "proportional gain on the position error [m/m] (tuning manual)", 0.0, 100.0),
@@ -189,6 +191,9 @@ class CompensatorNode(Node):
         except InputError as error:
             return SetParametersResult(successful=False, reason=str(error))
         with self._lock:
+            if candidate["enabled"] != self.values["enabled"]:
+                self.setpoint_m = None
+                self.core.reset()
             self.values = candidate
             if rebuild:
                 self.core, self.model_source = core, source
@@ -225,6 +230,9 @@ class CompensatorNode(Node):
             self.warnings.warn("setpoint", f"refused a non-finite setpoint ({value})")
             return
         with self._lock:
+            if not self.values["enabled"]:
+                self.warnings.warn("disabled", "setpoint ignored: enabled is false (another node owns current_cmd)")
+                return
             self.setpoint_m = value
             self.publish_command(self.compute_command(self.elapsed_s()))
 
@@ -238,7 +246,7 @@ class CompensatorNode(Node):
         """Fixed-rate step: the PI, lead and drift update (feedback, or a lag or drift in the model) or a repeat
         of the command."""
         with self._lock:
-            if self.setpoint_m is None:
+            if self.setpoint_m is None or not self.values["enabled"]:
                 return
             if self.values["feedback"] or self.core.tau_s > 0.0 or self.model.effect("drift") is not None:
                 self.publish_command(self.compute_command(self.elapsed_s()))

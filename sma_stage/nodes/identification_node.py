@@ -74,6 +74,8 @@ IDENTIFICATION_PARAMS = [
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
           read_only=True),
     Param("push_timeout", 2.0, "wait for the compensator's parameter service [s]", 0.0, 60.0),
+    Param("pause_compensator", True, "set the compensator's enabled false while ~/excite drives the stage, so "
+          "one node at a time owns current_cmd"),
     Param("record_bag", "", "rosbag2 directory to record current_cmd and joint_states into; empty: none"),
     Param("bag_storage", "sqlite3", f"rosbag2 storage: {' or '.join(STORAGES)}"),
     Param("bag_overwrite", False, "replace an existing record_bag directory (when the bag is finished)"),
@@ -312,6 +314,7 @@ class IdentificationNode(Node):
         with self._lock:
             self.record_until_ns = None
         self.excite_start_ns = self.now_ns()
+        self.set_compensator_enabled(False)
         self.excite_timer = self.create_timer(1.0 / float(self.values["excite_rate_hz"]), self.on_excite_tick)
         self.on_excite_tick()
         response.success = True
@@ -346,10 +349,33 @@ class IdentificationNode(Node):
         self.command_pub.publish(Float64(data=float(value)))
 
     def stop_excitation(self) -> None:
-        """Stop the excitation timer (the current stays at the last value published)."""
+        """Stop the excitation timer (the current stays at the last value published) and hand current_cmd
+        back to the compensator."""
         timer, self.excite_timer = self.excite_timer, None
         if timer is not None:
             self.destroy_timer(timer)
+            self.set_compensator_enabled(True)
+
+    def set_compensator_enabled(self, enabled: bool) -> None:
+        """Ask the compensator to publish again or to keep silent (pause_compensator); answers are logged,
+        not awaited (a service callback must not block)."""
+        if not self.values["pause_compensator"] or not self.context.ok():
+            return
+        name = self.push_client.srv_name
+        if not self.push_client.service_is_ready():
+            if not enabled:
+                self.get_logger().warning(f"{name} not available: a compensator may publish during the excitation")
+            return
+        request = SetParametersAtomically.Request(parameters=[Parameter("enabled", value=enabled).to_parameter_msg()])
+        future = self.push_client.call_async(request)
+
+        def answered(done: object) -> None:
+            result = done.result()
+            if result is None or not result.result.successful:
+                self.get_logger().warning(f"{name} did not take enabled={enabled}: "
+                                          f"{result.result.reason if result is not None else 'no answer'}")
+
+        future.add_done_callback(answered)
 
     # --- refit -----------------------------------------------------------------------------------
 
