@@ -193,6 +193,20 @@ def test_stage_watchdog_zeroes_a_stale_command(ros):
     assert 250.0 < float(values["wire_a_temperature_k"]) < 500.0
 
 
+def test_stage_publishes_the_current_it_applied_clamped_and_zeroed_by_the_watchdog(ros):
+    stage = stage_node(ros, rate_hz=100.0, command_timeout=0.3, max_current=2.0)
+    probe = ros.probe()
+    send = command_publisher(probe)
+    applied = Listener(probe, Float64, "current_applied", COMMAND_QOS)
+    wait_until(lambda: stage.count_publishers("current_cmd") >= 1 and probe.count_publishers("current_applied") >= 1,
+               5.0, "discovery")
+    send(3.5)
+    wait_until(lambda: applied.messages and applied.messages[-1].data == 2.0, 5.0, "the clamped current applied")
+    wait_until(lambda: applied.messages[-1].data == 0.0, 3.0, "zero after the watchdog")
+    values = {message.data for message in applied.messages}
+    assert values <= {0.0, 2.0} and 3.5 not in values, "what was applied, never what was requested"
+
+
 def test_stage_stop_latches_until_resume(ros):
     stage = stage_node(ros, rate_hz=100.0, command_timeout=5.0)
     probe = ros.probe()

@@ -1,5 +1,7 @@
 """The `stage` node: applies `current_cmd` [A] to the stage (the simulator backend) and publishes
-`joint_states` (stage_x position [m], velocity [m/s]) at rate_hz, with /diagnostics at 1 Hz.
+`joint_states` (stage_x position [m], velocity [m/s]) and `current_applied` (the current applied over the
+step, clamped, zero while stopped or after the watchdog [A]; reliable) at rate_hz, with /diagnostics at
+1 Hz.
 
 Safety: commands are clamped to +-max_current, NaN/inf commands are refused (the last safe command
 stays, but does not refresh the watchdog), the current is zeroed when no command came within
@@ -109,6 +111,7 @@ class StageNode(Node):
         self._last_tick: Time | None = None
 
         self.joint_pub = self.create_publisher(JointState, "joint_states", STATE_PUBLISH_QOS)
+        self.applied_pub = self.create_publisher(Float64, "current_applied", COMMAND_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.clock_pub = self.create_publisher(ClockMessage, "/clock", QoSProfile(depth=10)) \
             if self.use_sim_time else None
@@ -176,7 +179,8 @@ class StageNode(Node):
         return min(max(elapsed_s, 0.0), MAX_CATCH_UP_STEPS / self.rate_hz) * self.time_scale
 
     def on_tick(self) -> None:
-        """Advance the simulator one step and publish joint_states (and /clock with use_sim_time)."""
+        """Advance the simulator one step and publish current_applied and joint_states (and /clock with
+        use_sim_time)."""
         self.applied_a = self.current_to_apply()
         step_s = self.step_length_s()
         if step_s > 0.0:
@@ -189,6 +193,7 @@ class StageNode(Node):
         message.name = [JOINT_NAME]
         message.position = [self.state.measured_position_m]
         message.velocity = [self.state.velocity_m_s]
+        self.applied_pub.publish(Float64(data=float(self.applied_a)))
         self.joint_pub.publish(message)
 
     def stamp(self):
