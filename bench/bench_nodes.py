@@ -8,6 +8,7 @@ Run: .venv/bin/python bench/bench_nodes.py [--setpoints 2000] [--setpoint-rate 2
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import signal
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-MODEL_FILE = REPO / "config" / "model_default.yaml"
+SHIPPED_MODEL_FILE = REPO / "config" / "model_default.yaml"
 BIN_DIR = Path(sys.executable).parent
 SETPOINT_AMPLITUDE_M = 1.5e-4   # within the default model's reach (about -0.26..+0.30 mm)
 SETPOINT_PERIOD_S = 1.0
@@ -192,11 +193,23 @@ def setpoint_sequence(count: int, rate_hz: float) -> np.ndarray:
     return SETPOINT_AMPLITUDE_M * np.sin(2.0 * np.pi * t / SETPOINT_PERIOD_S + 0.1)
 
 
+@functools.cache
+def plain_model_file() -> Path:
+    """The shipped model's GPI without its lag, in a temporary file: the compensator (feedforward, no rate
+    limit) then answers with the plain exact inverse, which this benchmark runs too to match replies."""
+    from sma_stage.model import IdentifiedModel, load_model_file
+
+    shipped = load_model_file(SHIPPED_MODEL_FILE)
+    path = Path(tempfile.mkdtemp(prefix="bench_nodes_")) / "plain_model.yaml"
+    IdentifiedModel(shipped.parameters, shipped.operators).save(path)
+    return path
+
+
 def expected_commands(setpoints: np.ndarray, max_current_a: float = 5.0) -> np.ndarray:
     """The currents [A] the compensator answers to setpoints: the same exact inverse stream, run here."""
     from sma_stage.model import GPIInverseStream, load_model_file
 
-    model = load_model_file(str(MODEL_FILE))
+    model = load_model_file(plain_model_file())
     stream = GPIInverseStream(model.parameters, model.operators, "exact", input_range=(-max_current_a, max_current_a))
     return np.array([stream.step(value) for value in setpoints])
 
@@ -308,10 +321,12 @@ def measure_latency(ros: Ros, count: int, rate_hz: float, children: Sequence[Chi
 
 
 def compensator_overrides():
-    """The compensator's parameters for the benchmark: the default model file, repeats every 10 s only."""
+    """The compensator's parameters for the benchmark: the plain model file, feedforward without the rate
+    limit, repeats every 10 s only."""
     from rclpy.parameter import Parameter
 
-    return [Parameter("model_file", value=str(MODEL_FILE)), Parameter("rate_hz", value=0.1)]
+    return [Parameter("model_file", value=str(plain_model_file())), Parameter("rate_hz", value=0.1),
+            Parameter("feedback", value=False), Parameter("max_current_rate", value=0.0)]
 
 
 def latency_case(case: Case, args: argparse.Namespace) -> LatencyRun:
@@ -354,7 +369,8 @@ def callback_cost(count: int, rate_hz: float, domain_id: int) -> np.ndarray:
 
 def latency_cases(args: argparse.Namespace) -> list[Case]:
     """The target case first, then the comparisons."""
-    model = ("-p", f"model_file:={MODEL_FILE}", "-p", "rate_hz:=0.1")
+    model = ("-p", f"model_file:={plain_model_file()}", "-p", "rate_hz:=0.1", "-p", "feedback:=false",
+             "-p", "max_current_rate:=0.0")
     cases = [Case("compensator_node (installed executable)", node_command("compensator_node", *model))]
     if args.compare:
         cases.append(Case("compensator, SingleThreadedExecutor", runner_command("compensator", "single", *model)))
