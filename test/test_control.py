@@ -202,3 +202,20 @@ def test_the_current_changes_by_at_most_the_rate_limit_per_step():
     currents = [first] + [core.command(3e-4, None, 0.1) for _ in range(100)]
     assert np.max(np.abs(np.diff(currents))) <= 0.1 + 1e-12
     assert currents[-1] > currents[1] + 2.0, "it gets there, 0.1 A per 0.1 s step"
+
+
+def test_following_the_applied_current_keeps_the_model_where_the_stage_is():
+    """Currents the compensator did not command (an excitation) step its lag (each held over its step) and
+    its operators (driven by the lag's state), so its next command starts where the stage is."""
+    tau_s, dt_s = 6.0, 1.0
+    u = 4.0 * np.sin(2.0 * np.pi * np.arange(300) / 250.0)
+    following = Compensator(lagged(tau_s), LIMIT_A)
+    state, forward = 0.0, GPIForwardStream(MODEL.parameters, MODEL.operators)
+    for k, current in enumerate(u):
+        following.follow_applied(current, dt_s if k else 0.0)
+        if k:
+            state = current + (state - current) * math.exp(-dt_s / tau_s)
+        forward.step(state)
+    assert following.lag_state_a == pytest.approx(state, abs=1e-12)
+    assert np.allclose(following.inverse.states, forward.states, rtol=0.0, atol=1e-15)
+    assert following.integral_m == 0.0 and following.command_a == u[-1]

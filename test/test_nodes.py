@@ -427,6 +427,28 @@ def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gain
     assert (compensator.core.tau_s, compensator.core.kp, compensator.core.ki) == (11.0, 1.0, 0.1)
 
 
+def test_compensator_model_follows_the_current_applied_while_it_does_not_command(ros):
+    lag = Effect("thermal_lag", {"tau_s": 0.3})
+    compensator = compensator_node(ros, rate_hz=2.0, model=model_text(DEFAULT_PARAMS, OPERATORS, lag))
+    probe = CompensatorProbe(ros, compensator)
+    applied_pub = probe.node.create_publisher(Float64, "current_applied", COMMAND_QOS)
+    wait_until(lambda: compensator.count_publishers("current_applied") >= 1, 5.0, "discovery")
+    for _ in range(150):  # 3 A for about 1.5 s: the stage driven by someone else
+        applied_pub.publish(Float64(data=3.0))
+        time.sleep(0.01)
+    wait_until(lambda: compensator.core.lag_state_a > 2.9, 5.0, "the lag's state to follow the applied 3 A")
+    assert np.any(compensator.inverse.states != 0.0) and compensator.command_a == 3.0
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: probe.latest() is not None, 5.0, "a command for the setpoint")
+    followed = []
+    compensator.core.follow_applied = lambda current, dt: followed.append(current)
+    for _ in range(30):  # the compensator commands now: its own commands step its model, not these
+        applied_pub.publish(Float64(data=-5.0))
+        time.sleep(0.01)
+    time.sleep(0.2)
+    assert followed == [] and compensator.command_a != -5.0
+
+
 def test_compensator_refuses_a_missing_model_file_at_start(ros, tmp_path):
     with pytest.raises(InputError) as excinfo:
         CompensatorNode(context=ros.context, parameter_overrides=[Parameter("model_file", value=str(tmp_path / "no.yaml"))])

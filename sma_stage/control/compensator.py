@@ -49,7 +49,7 @@ import math
 import numpy as np
 
 from sma_stage.errors import InputError, finite_number
-from sma_stage.model import GPIInverseStream, IdentifiedModel
+from sma_stage.model import GPIForwardStream, GPIInverseStream, IdentifiedModel
 from sma_stage.model.effects import current_for_heating, joule_heating, lag_drive_for, lag_step
 
 COMPENSATION = {
@@ -231,6 +231,26 @@ class Compensator:
             return current
         previous = self.command_a
         return min(previous + rate * dt, max(previous - rate * dt, current))
+
+    def follow_applied(self, current_a: float, dt_s: float) -> None:
+        """Step the model's states with a current [A] the stage applied for dt_s [s] that this compensator
+        did not command (an excitation, another node, the watchdog): the lag with it held, the operators
+        with the lag's new state, the drift's time; so that the next command starts where the stage is.
+        The loop starts again (integral 0)."""
+        current = finite_number("current_a", current_a)
+        dt = _non_negative("dt_s", dt_s)
+        drive = float(joule_heating(current, self._reference))
+        self.lag_state_a = lag_step(self.lag_state_a, drive, drive, dt, self.tau_s) if dt > 0.0 else \
+            (self.lag_state_a if self._lag is not None else drive)
+        seen = self.lag_state_a if self._lag is not None else drive
+        forward = GPIForwardStream(self._model.parameters, self._model.operators, initial=self._inverse.states)
+        forward.step(seen)
+        self._inverse.reset(initial=forward.states, previous_input=seen)
+        self.drift_elapsed_s += dt
+        self.command_a = current
+        self.integral_m = 0.0
+        self._played_m = None
+        self._commanded = False
 
     def _drift_offset(self) -> float:
         if self._drift is None:

@@ -112,12 +112,13 @@ class GPIInverseStream:
         self.last_clipped = 0
         self.reset(initial)
 
-    def reset(self, initial: np.ndarray | None = None) -> None:
-        """Forget the history: operator states back to zeros, or to initial [output unit]."""
+    def reset(self, initial: np.ndarray | None = None, previous_input: float = 0.0) -> None:
+        """Forget the history: operator states back to zeros, or to initial [output unit]; previous_input [A]
+        is where the exact inverse's next search starts (the input nearest it is chosen)."""
         self._states = initial_states(self.params, self.operators, initial)
         self._plays = analytic_play_states(self.params, self.operators, self._states)
         self._direction = np.array([float(self._weights @ self._states), 1.0])
-        self._input = float(np.clip(0.0, *self.input_range))
+        self._input = float(np.clip(previous_input, *self.input_range))
         self.last_clipped = 0
 
     @property

@@ -121,11 +121,13 @@ class CompensatorNode(Node):
         self.measured_m: float | None = None
         self.clipped_count = 0
         self._last_step_ns: int | None = None
+        self._last_applied_ns: int | None = None
         self.warnings = ThrottledWarnings(self)
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
         self.create_subscription(Float64, "setpoint", self.on_setpoint, COMMAND_QOS)
         self.create_subscription(JointState, "joint_states", self.on_joint_states, STATE_SUBSCRIBE_QOS)
+        self.create_subscription(Float64, "current_applied", self.on_current_applied, COMMAND_QOS)
         self.create_service(Trigger, "~/reload", self.on_reload)
         self.period_s = 1.0 / float(self.values["rate_hz"])
         self.create_timer(self.period_s, self.on_tick, clock=self.steady)
@@ -235,6 +237,19 @@ class CompensatorNode(Node):
                 return
             self.setpoint_m = value
             self.publish_command(self.compute_command(self.elapsed_s()))
+
+    def on_current_applied(self, message: Float64) -> None:
+        """The current [A] the stage applied over its last step: while this node does not command the stage
+        (no setpoint, or enabled false), the model's states follow it (Compensator.follow_applied)."""
+        value = float(message.data)
+        with self._lock:
+            now_ns = self.get_clock().now().nanoseconds
+            previous_ns, self._last_applied_ns = self._last_applied_ns, now_ns
+            if self.setpoint_m is not None and self.values["enabled"] or not math.isfinite(value):
+                return
+            dt_s = max((now_ns - previous_ns) * 1e-9, 0.0) if previous_ns is not None else 0.0
+            self.core.follow_applied(value, dt_s)
+            self._last_step_ns = now_ns
 
     def on_joint_states(self, message: JointState) -> None:
         """Keep the latest measured position [m]."""
