@@ -59,7 +59,8 @@ class Player:
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
         settings = dict(use_sim_time=True, operators=OPERATORS, holdout_fraction=HOLDOUT, push_timeout=0.0,
-                        compensator_name="no_compensator_in_this_test", diagnose_rounds=0)
+                        compensator_name="no_compensator_in_this_test", diagnose_rounds=0,
+                        input_topic="current_cmd")  # the bags hold the commands the node recorded then
         settings.update(overrides)
         self.identification = IdentificationNode(
             context=self.context, parameter_overrides=[Parameter(k, value=v) for k, v in settings.items()])

@@ -553,22 +553,23 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     recorded = identification.snapshot()
     assert len(recorded) == report["samples"]["identification"] + report["samples"]["validation"], "buffer frozen"
     identification.close_bag()
-    from_bag = read_bag(bag)
+    from_bag = read_bag(bag, input_topic="current_applied")
     assert len(from_bag) > len(recorded), "the bag records before and after the excitation too"
     assert np.ptp(from_bag.input) >= np.ptp(recorded.input) > 5.0
     print(json.dumps({key: report[key] for key in ("identification", "validation", "samples", "fit_seconds")}))
 
 
 class FakeStage:
-    """Publishes hand-made current_cmd and joint_states messages (stamped with the probe's clock)."""
+    """Publishes hand-made current_applied and joint_states messages (stamped with the probe's clock), as a
+    stage reports what it applied."""
 
     def __init__(self, ros: Ros, identification: IdentificationNode) -> None:
         self.node = ros.probe("fake_stage")
-        command_pub = self.node.create_publisher(Float64, "current_cmd", 1000)
+        command_pub = self.node.create_publisher(Float64, "current_applied", 1000)
         self.send_command = lambda value: command_pub.publish(Float64(data=float(value)))
         self.state_pub = self.node.create_publisher(JointState, "joint_states", 1000)
         wait_until(lambda: identification.count_publishers("joint_states") >= 1
-                   and identification.count_publishers("current_cmd") >= 2, 5.0, "discovery")
+                   and identification.count_publishers("current_applied") >= 1, 5.0, "discovery")
 
     def publish(self, currents, positions=None, commands=True, states=True) -> None:
         positions = np.tanh(np.asarray(currents) / 3.0) * 1e-4 if positions is None else positions
@@ -590,7 +591,7 @@ def test_identification_refuses_a_refit_without_enough_data(ros):
     identification = identification_node(ros, min_samples=50, push_timeout=0.1)
     fake = FakeStage(ros, identification)
     answer = refit_answer(ros, fake.node)
-    assert not answer.success and "no messages on current_cmd" in answer.message
+    assert not answer.success and "no messages on current_applied" in answer.message
     fake.publish(np.linspace(-4.0, 4.0, 30), states=False)
     wait_until(lambda: len(identification.inputs) == 30, 5.0, "30 recorded commands")
     answer = refit_answer(ros, fake.node)
@@ -775,7 +776,8 @@ def test_identification_record_bag_can_be_switched_while_running(ros, tmp_path):
     fake.publish(np.linspace(-3.0, 3.0, 40))
     wait_until(lambda: len(identification.outputs) == 40, 5.0, "40 recorded positions")
     assert identification.set_parameters([Parameter("record_bag", value="")])[0].successful
-    from_bag, recorded = read_bag(bag, min_samples=10), identification.recording_snapshot(min_samples=10)
+    from_bag = read_bag(bag, min_samples=10, input_topic="current_applied")
+    recorded = identification.recording_snapshot(min_samples=10)
     # DDS keeps no order between the two topics, so the first output may come before any input and be dropped
     assert len(from_bag) == len(recorded) >= 30 and np.ptp(from_bag.input) > 4.0
     for column in ("t", "input", "output"):

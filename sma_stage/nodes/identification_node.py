@@ -1,4 +1,5 @@
-"""The `identification` node: records `current_cmd` [A] and `joint_states` [m] into a bounded buffer (and
+"""The `identification` node: records `current_applied` [A] (the current the stage applied, whoever
+commanded it; `input_topic`) and `joint_states` [m] into a bounded buffer (and
 into a rosbag2 directory when `record_bag` is set), drives the paper's identification signal on request,
 and refits the GPI model on request.
 
@@ -76,7 +77,7 @@ IDENTIFICATION_PARAMS = [
     Param("push_timeout", 2.0, "wait for the compensator's parameter service [s]", 0.0, 60.0),
     Param("pause_compensator", True, "set the compensator's enabled false while ~/excite drives the stage, so "
           "one node at a time owns current_cmd"),
-    Param("record_bag", "", "rosbag2 directory to record current_cmd and joint_states into; empty: none"),
+    Param("record_bag", "", "rosbag2 directory to record input_topic and joint_states into; empty: none"),
     Param("bag_storage", "sqlite3", f"rosbag2 storage: {' or '.join(STORAGES)}"),
     Param("bag_overwrite", False, "replace an existing record_bag directory (when the bag is finished)"),
     Param("excite_amplitude_start", 5.0, "identification signal amplitude at its start [A]", 0.0, 20.0),
@@ -90,14 +91,17 @@ IDENTIFICATION_PARAMS = [
     Param("freeze_after_excite", True, "stop filling the buffer when an excitation ends (until ~/clear or "
           "~/excite), so a refit sees only the excitation; the bag records on"),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
+    Param("input_topic", "current_applied", "std_msgs/Float64 topic of the current recorded and fitted [A]: what "
+          "the stage applied (current_cmd for a stage that does not publish it, or a bag of commands)",
+          read_only=True),
 ]
 
 
 def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, int, float]],
-                     min_samples: int) -> Series:
+                     min_samples: int, input_topic: str = "current_applied") -> Series:
     """The checked Series (t [s], input [A], output [m]) of a recording; InputError saying what is missing."""
     if not inputs:
-        raise InputError("no messages on current_cmd were recorded: is anything publishing it?")
+        raise InputError(f"no messages on {input_topic} were recorded: is anything publishing it?")
     if not outputs:
         raise InputError("no messages on joint_states were recorded: is the stage running?")
     input_ns, input_values = (np.array(column) for column in zip(*inputs, strict=True))
@@ -106,7 +110,7 @@ def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, i
                                     output_times(receive_ns.astype(np.int64), stamp_ns.astype(np.int64)),
                                     positions.astype(float))
     if t.size == 0:
-        raise InputError("no joint_states message came at or after the first current_cmd message")
+        raise InputError(f"no joint_states message came at or after the first {input_topic} message")
     return make_series(t, u, y, "recording", min_samples=min_samples)
 
 
@@ -114,22 +118,23 @@ class BagThread:
     """A BagRecorder driven from one thread of its own (the sqlite3 storage must stay in the thread that
     opened it, while the executor calls back from several)."""
 
-    def __init__(self, path: Path, storage: str, overwrite: bool = False) -> None:
+    def __init__(self, path: Path, storage: str, overwrite: bool = False, input_topic: str = "current_applied") -> None:
         self.path = path
         if (path.exists() or path.is_symlink()) and not overwrite:
             raise InputError(f"record_bag {path} exists already: choose another path or set bag_overwrite true")
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._opened = threading.Event()
         self._error: Exception | None = None
-        self._thread = threading.Thread(target=self._run, args=(storage, overwrite), name="bag-writer", daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(storage, overwrite, input_topic), name="bag-writer",
+                                        daemon=True)
         self._thread.start()
         self._opened.wait()
         if self._error is not None:
             raise self._error
 
-    def _run(self, storage: str, overwrite: bool) -> None:
+    def _run(self, storage: str, overwrite: bool, input_topic: str) -> None:
         try:
-            recorder = BagRecorder.open(self.path, storage, overwrite=overwrite)
+            recorder = BagRecorder.open(self.path, storage, overwrite=overwrite, input_topic=input_topic)
         except Exception as error:  # noqa: BLE001 -- handed to the opening thread
             self._error = error if isinstance(error, InputError) else InputError(f"cannot record {self.path}: {error}")
             self._opened.set()
@@ -181,7 +186,7 @@ class IdentificationNode(Node):
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
         self.report_pub = self.create_publisher(String, "~/report", REPORT_QOS)
-        self.create_subscription(Float64, "current_cmd", self.on_command, RECORD_COMMAND_QOS)
+        self.create_subscription(Float64, str(self.values["input_topic"]), self.on_command, RECORD_COMMAND_QOS)
         self.create_subscription(JointState, "joint_states", self.on_joint_states, RECORD_STATE_QOS)
         self.create_service(Trigger, "~/excite", self.on_excite)
         self.create_service(Trigger, "~/clear", self.on_clear)
@@ -202,7 +207,7 @@ class IdentificationNode(Node):
     def open_bag(self, path: str, storage: str, overwrite: bool) -> None:
         """Start recording into a new rosbag2 directory (none for an empty path)."""
         if path:
-            self.recorder = BagThread(Path(path), storage, overwrite)
+            self.recorder = BagThread(Path(path), storage, overwrite, str(self.values["input_topic"]))
 
     def close_bag(self) -> None:
         """Finish the bag being recorded (renamed into place)."""
@@ -398,7 +403,7 @@ class IdentificationNode(Node):
         """The recording so far, aligned as a bag of it would be, with at least min_samples samples."""
         with self._lock:
             inputs, outputs = list(self.inputs), list(self.outputs)
-        return recording_series(inputs, outputs, min_samples)
+        return recording_series(inputs, outputs, min_samples, str(self.values["input_topic"]))
 
     def on_refit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the recording (in the refit worker thread) and answer with the JSON report."""
