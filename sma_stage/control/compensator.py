@@ -73,7 +73,6 @@ def _non_negative(name: str, value: float) -> float:
     return number
 
 
-GAIN_PARAMETERS = ("kp", "ki")
 DEFAULT_LEAD_LIMIT = 3.0
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
@@ -179,7 +178,7 @@ class Compensator:
         inverse = GPIInverseStream(model.parameters, model.operators, method or self._inverse.method,
                                    initial=None if state is None else np.array(state.operators), input_range=reach)
         self._model, self._inverse, self._limit = model, inverse, limit
-        self._lag, self._reference, self._reach = lag, reference, reach
+        self._lag, self._reference = lag, reference
         self._drift = model.effect("drift")
         self.reset()
 
@@ -280,7 +279,7 @@ class Compensator:
             exact = lag_drive_for(self.lag_state_a, lag_input, self._hold_s, tau)
             limit = self.lag_state_a + self._lead_limit * (lag_input - self.lag_state_a)
             wanted = exact if abs(exact - self.lag_state_a) <= abs(limit - self.lag_state_a) else limit
-        low, high = self._reach
+        low, high = self._inverse.input_range
         clipped = min(high, max(low, wanted))
         self.saturated = self._inverse.last_clipped or (wanted > clipped) - (wanted < clipped)
         return current_for_heating(clipped, self._reference)

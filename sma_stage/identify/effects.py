@@ -36,11 +36,11 @@ from sma_stage.identify.fit import (
     information_criterion,
 )
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
-from sma_stage.model.effects import Effect, drift_regressors, rate_forward
+from sma_stage.model.effects import EFFECT_KINDS, Effect, drift_regressors, rate_forward
 from sma_stage.model.identified import IdentifiedModel
 from sma_stage.model.parameters import GPIParameters
 
-EFFECT_NAMES: tuple[str, ...] = ("thermal_lag", "delay", "rate", "drift")
+EFFECT_NAMES: tuple[str, ...] = EFFECT_KINDS
 SEARCH_GRID_POINTS = 6
 LOG_TOLERANCE = 1e-3  # tolerance of the scalar searches on the log of the parameter (0.1 %)
 COARSE_LOG_TOLERANCE = 5e-2  # tolerance of the thorough stage of a search (5 %)
@@ -55,9 +55,6 @@ RATE_MAX_EVALUATIONS = 200
 CREEP_TAU_RANGE_FRACTION = (0.01, 1.0)  # creep time constant bounds, fractions of the duration
 
 Progress = Callable[[str], None] | None
-Predictor = Callable[[np.ndarray, np.ndarray], np.ndarray]
-Transform = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (t [s], u [A]) -> the input the GPI sees [A]
-Offset = Callable[[np.ndarray], np.ndarray]  # t [s] -> what the effect adds to the output [output unit]
 Fitted = TypeVar("Fitted")
 # What a fit that cannot be had raises: refused data (InputError) or a numerical failure on the way
 # (an overflow, a singular matrix, scipy refusing a non-finite residual).

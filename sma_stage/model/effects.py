@@ -77,6 +77,12 @@ def first_step(t: np.ndarray, state: EffectState | None) -> float:
     return float(t[1] - t[0]) if t.size > 1 else 1.0
 
 
+def idle_start(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(t, u) with the moment the current was switched on ahead of them: one sample period before the
+    first sample, at u[0] (zero before it)."""
+    return np.concatenate(([t[0] - first_step(t, None)], t)), np.concatenate(([u[0]], u))
+
+
 @dataclass(frozen=True)
 class EffectState:
     """Where a record left an effect: the time of its last sample [s] and the effect's own state values
@@ -162,8 +168,7 @@ class Effect:
             history = np.reshape(np.asarray(state.values, dtype=float), (-1, 2))
             times, currents = np.concatenate((history[:, 0], t)), np.concatenate((history[:, 1], u))
         else:
-            step = first_step(t, None)
-            times, currents = np.concatenate(([t[0] - step], t)), np.concatenate(([u[0]], u))
+            times, currents = idle_start(t, u)
         out = np.interp(t - delay, times, currents, left=0.0)
         keep = times >= t[-1] - delay - (times[-1] - times[-2] if times.size > 1 else 0.0)
         kept = np.column_stack((times[keep], currents[keep])).ravel()
@@ -198,8 +203,7 @@ class Effect:
         if state is not None and state.values:
             times, currents = np.concatenate(([state.time_s], t)), np.concatenate(([state.values[0]], u))
         else:
-            step = first_step(t, None)
-            times, currents = np.concatenate(([t[0] - step], t)), np.concatenate(([u[0]], u))
+            times, currents = idle_start(t, u)
         return currents, input_rate(times, currents), EffectState(float(t[-1]), (float(u[-1]),))
 
 

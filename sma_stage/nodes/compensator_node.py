@@ -43,7 +43,7 @@ from sma_stage.control.compensator import (
 )
 from sma_stage.errors import InputError
 from sma_stage.io.rosbag_io import joint_index
-from sma_stage.model import IdentifiedModel, load_model_file
+from sma_stage.model import GPIInverseStream, IdentifiedModel, load_model_file
 from sma_stage.model.inverse import METHODS
 from sma_stage.nodes._common import (
     COMMAND_QOS,
@@ -156,7 +156,7 @@ class CompensatorNode(Node):
         return self.core.model
 
     @property
-    def inverse(self):
+    def inverse(self) -> GPIInverseStream:
         """The streaming GPI inverse in force."""
         return self.core.inverse
 
