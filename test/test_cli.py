@@ -108,3 +108,17 @@ def test_diagnose_needs_validation_data(tmp_path, capsys):
         main(["diagnose", str(tmp_path / "ident.csv")])
     assert exit_status.value.code == 2
     assert "--validate" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("arguments", "message"), [
+    (["--holdout", "1.5"], "between 0 and 1"),
+    (["--holdout", "nan"], "between 0 and 1"),
+    (["--holdout", "0.25", "--validate", "v.csv"], "not allowed with"),
+    (["--holdout", "0.25", "--rounds", "9"], "from 1 to 4"),
+])
+def test_diagnose_refuses_a_bad_holdout_or_round_count(arguments, message, tmp_path, capsys):
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exit_status:
+        main(["diagnose", str(tmp_path / "ident.csv"), "--out", str(out), *arguments])
+    assert exit_status.value.code == 2
+    assert message in capsys.readouterr().err and not out.exists()
