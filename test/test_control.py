@@ -180,6 +180,21 @@ def test_the_lead_limit_bounds_the_lead_and_the_lag_then_follows_with_tau_over_t
     assert rate == pytest.approx(limit / tau_s, rel=0.02)
 
 
+def test_the_lead_works_over_the_hold_it_is_given_not_the_time_since_the_last_call():
+    """A setpoint that arrives between two control ticks is held until the next tick: the lead brings the
+    lag's state to v* over hold_s, whatever the time since the previous call."""
+    tau_s, hold_s = 10.0, 5.0
+    target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
+    for since_s in (0.0, 0.01, 0.7):
+        core = Compensator(lagged(tau_s), LIMIT_A, lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+        current = core.command(1e-4, None, since_s, hold_s=hold_s)
+        assert current == pytest.approx(target / (1.0 - math.exp(-hold_s / tau_s)), rel=1e-12), since_s
+        assert current < LIMIT_A
+    by_default, given = (Compensator(lagged(tau_s), LIMIT_A, lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+                         for _ in range(2))
+    assert by_default.command(1e-4, None, 3.0) == given.command(1e-4, None, 3.0, hold_s=3.0), "default: dt_s"
+
+
 def test_the_loops_target_reverses_only_beyond_the_deadband():
     core = Compensator(MODEL, LIMIT_A, kp=1.0, deadband_m=1e-6, max_rate_a_per_s=0.0)
     first = core.command(1e-4, 1e-4, 0.1)

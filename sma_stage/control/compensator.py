@@ -208,11 +208,18 @@ class Compensator:
         """The thermal lag's time constant [s] the lead undoes (0: none)."""
         return self._lag.parameters["tau_s"] if self._lag is not None else 0.0
 
-    def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0) -> float:
+    def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
+                hold_s: float | None = None) -> float:
         """The current [A] for setpoint_m [m]; with measured_m [m] the PI loop acts, integrating the error
-        over dt_s [s], the time since the previous call (0 for a call at the same instant)."""
+        over dt_s [s], the time since the previous call (0 for a call at the same instant). hold_s [s]: how
+        long this command will be held, the step the lead brings the lag's state to v* over (default: dt_s
+        when above 0, else the previous hold; no lead before any)."""
         setpoint = finite_number("setpoint_m", setpoint_m)
         dt = _non_negative("dt_s", dt_s)
+        if hold_s is not None:
+            self._hold_s = _non_negative("hold_s", hold_s)
+        elif dt > 0.0:
+            self._hold_s = dt
         self.target_m = setpoint
         if measured_m is not None:
             self.target_m = self._pi_target(setpoint, finite_number("measured_m", measured_m), dt)
@@ -271,7 +278,6 @@ class Compensator:
     def _lead(self, lag_input: float, dt: float) -> float:
         tau = self.tau_s
         if dt > 0.0:
-            self._hold_s = dt
             held = float(joule_heating(self.command_a, self._reference))
             self.lag_state_a = lag_step(self.lag_state_a, held, held, dt, tau)
         wanted = lag_input

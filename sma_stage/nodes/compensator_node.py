@@ -17,7 +17,9 @@ every new model; with `manual` the kp and ki parameters are used. The integral
 and the lead run on the node clock (simulated time with use_sim_time); the integral stops while the
 command saturates in the direction of the error (anti-windup). A command is published on each setpoint
 and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog): computed again in
-feedback mode or with a lag or drift in the model, the last one repeated otherwise.
+feedback mode or with a lag or drift in the model, the last one repeated otherwise. The control period
+1/rate_hz is counted on the node clock with use_sim_time (simulated seconds: the loop acts on the period
+a real stage would have, however fast the simulation runs), else on the steady clock.
 """
 
 from __future__ import annotations
@@ -82,7 +84,7 @@ COMPENSATOR_PARAMS = [
           "sigmas)", 0.0, 1e-2),
     Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of node-clock time]; "
           "0: no limit", 0.0, 1e6),
-    Param("rate_hz", 50.0, "command republication and PI loop rate [Hz]", 0.1, 2000.0, read_only=True),
+    Param("rate_hz", 50.0, "command republication and PI loop rate [Hz; of simulated time with use_sim_time]", 0.1, 2000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
 
@@ -122,6 +124,7 @@ class CompensatorNode(Node):
         self.clipped_count = 0
         self._last_step_ns: int | None = None
         self._last_applied_ns: int | None = None
+        self._last_tick_ns: int | None = None
         self.warnings = ThrottledWarnings(self)
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
@@ -130,7 +133,7 @@ class CompensatorNode(Node):
         self.create_subscription(Float64, "current_applied", self.on_current_applied, COMMAND_QOS)
         self.create_service(Trigger, "~/reload", self.on_reload)
         self.period_s = 1.0 / float(self.values["rate_hz"])
-        self.create_timer(self.period_s, self.on_tick, clock=self.steady)
+        self.create_timer(self.period_s, self.on_tick, clock=self.control_clock())
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
 
     def settings(self, model: IdentifiedModel, values: dict[str, object]) -> dict[str, float]:
@@ -257,10 +260,19 @@ class CompensatorNode(Node):
         if index is not None and math.isfinite(message.position[index]):
             self.measured_m = float(message.position[index])
 
+    def control_clock(self) -> Clock:
+        """The clock the control period runs on: the node clock with use_sim_time (1/rate_hz simulated s,
+        whatever the simulation's pace), else the steady clock."""
+        return self.get_clock() if self.get_parameter("use_sim_time").value else self.steady
+
     def on_tick(self) -> None:
         """Fixed-rate step: the PI, lead and drift update (feedback, or a lag or drift in the model) or a repeat
         of the command."""
         with self._lock:
+            now_ns = self.get_clock().now().nanoseconds
+            previous_ns, self._last_tick_ns = self._last_tick_ns, now_ns
+            if previous_ns is not None and now_ns > previous_ns:
+                self.follow_control_period((now_ns - previous_ns) * 1e-9)
             if self.setpoint_m is None or not self.values["enabled"]:
                 return
             if self.values["feedback"] or self.core.tau_s > 0.0 or self.model.effect("drift") is not None:
@@ -269,8 +281,8 @@ class CompensatorNode(Node):
                 self.publish_command(self.command_a)
 
     def follow_control_period(self, dt_s: float) -> None:
-        """Keep a running mean of the node-clock time between commands [s] (with use_sim_time, simulated
-        seconds: 1/rate_hz of wall time times the stage's time_scale); with tuning imc, derive the gains
+        """Keep a running mean of the node-clock time between ticks [s] (simulated seconds with
+        use_sim_time); with tuning imc, derive the gains
         again when it has moved by more than PERIOD_TOLERANCE from the period they were derived for."""
         self.period_estimate_s += PERIOD_SMOOTHING * (min(dt_s, 10.0 * self.period_estimate_s) - self.period_estimate_s)
         if self.values["tuning"] != "imc" or abs(self.period_estimate_s / self.tuned_period_s - 1.0) <= PERIOD_TOLERANCE:
@@ -291,11 +303,10 @@ class CompensatorNode(Node):
         return max((now_ns - previous_ns) * 1e-9, 0.0)
 
     def compute_command(self, dt_s: float) -> float:
-        """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral, lead's rate)."""
-        if dt_s > 0.0:
-            self.follow_control_period(dt_s)
+        """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral), held for one control
+        period (the lead's step)."""
         measured = self.measured_m if self.values["feedback"] else None
-        current = self.core.command(self.setpoint_m, measured, dt_s)
+        current = self.core.command(self.setpoint_m, measured, dt_s, hold_s=self.period_estimate_s)
         if self.inverse.last_clipped:
             self.clipped_count += 1
             self.warnings.warn("clipped", f"target {self.core.target_m:.4g} m is beyond the model's reach within "
