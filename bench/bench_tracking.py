@@ -13,6 +13,9 @@ feedforward and with the PI loop (the same gains for all). Errors: the measured
 position after each step against the setpoint at that time, over the signal, in % of the stroke; and
 how smooth the current is: its change from one command to the next (RMS and 99th percentile over the
 signal) in % of the current limit.
+Holding: every mode holds a setpoint at each of HOLD_FRACTIONS of the stroke, from rest, for HOLD_S; the
+settled error (|mean - setpoint| over the last half, % of the stroke) and the ripple (RMS about the mean,
+um, the largest over the setpoints).
 
     .venv/bin/python bench/bench_tracking.py           # the table
     .venv/bin/python bench/bench_tracking.py --scan    # also the PI gain scan that chose the gains
@@ -27,7 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from sma_stage.control import Compensator
-from sma_stage.control.compensator import imc_gains
+from sma_stage.control.compensator import (
+    DEFAULT_FEEDFORWARD_LEAD_LIMIT,
+    TRACKING_FEEDFORWARD_LEAD_LIMIT,
+    imc_gains,
+)
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import make_series
 from sma_stage.model import IdentifiedModel
@@ -43,7 +50,10 @@ SETTLE_S = 60.0
 RUN_S = 1000.0
 IDENTIFICATION_SEED = 0
 TRACKING_SEED = 1
-TARGETS_PCT = {False: 3.0, True: 0.5}  # RMS % of the stroke: feedforward, PI loop
+TARGETS_PCT = {False: 2.0, True: 0.5}  # RMS % of the stroke: feedforward, PI loop
+HOLD_FRACTIONS = (0.2, 0.4, 0.55, 0.7, 0.85, 0.95)  # held setpoints: fractions of the stroke from its bottom
+HOLD_S = 1200.0
+HOLD_TARGETS_PCT = {False: 3.0, True: 0.5}  # settled error, % of the stroke: feedforward, PI loop
 SCAN_KP = (0.0, 0.5, 1.0, 2.0, 4.0)
 SCAN_KI = (0.3, 1.0, 2.0, 4.0, 8.0)
 
@@ -74,11 +84,14 @@ class Mode:
     feedback: bool
     kp: float = 0.0
     ki: float = 0.0
+    feedforward_lead_limit: float = DEFAULT_FEEDFORWARD_LEAD_LIMIT
 
     @property
     def name(self) -> str:
         """How the table names it."""
         loop = f"PI kp {self.kp:.3g} ki {self.ki:.3g}/s" if self.feedback else "feedforward"
+        if not self.feedback and self.feedforward_lead_limit != DEFAULT_FEEDFORWARD_LEAD_LIMIT:
+            loop += f", feedforward_lead_limit {self.feedforward_lead_limit:g}"
         return f"{self.model.name}, {loop}"
 
 
@@ -116,7 +129,8 @@ def setpoints(stroke_m: tuple[float, float], t_s: np.ndarray) -> np.ndarray:
 
 def compensator_for(mode: Mode) -> Compensator:
     """The control core for the mode's model and gains."""
-    return Compensator(mode.model.model, MAX_CURRENT_A, kp=mode.kp, ki=mode.ki)
+    return Compensator(mode.model.model, MAX_CURRENT_A, kp=mode.kp, ki=mode.ki,
+                       feedforward_lead_limit=mode.feedforward_lead_limit)
 
 
 def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[float, float, float, float]:
@@ -141,10 +155,45 @@ def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[fl
             float(np.percentile(change, 99)))
 
 
+def hold(identified: Identified, mode: Mode, control_step_s: float, fraction: float) -> tuple[float, float]:
+    """A setpoint at `fraction` of the stroke, from a stage at rest, held for HOLD_S: (settled error
+    |mean position - setpoint| over the last half [% of the stroke], ripple: RMS about that mean [um])."""
+    compensator = compensator_for(mode)
+    stage = StageSimulator(seed=TRACKING_SEED)
+    low, high = identified.stroke_m
+    target = low + fraction * (high - low)
+    steps = int(round(HOLD_S / control_step_s))
+    position = stage.state.measured_position_m
+    positions = np.empty(steps)
+    for k in range(steps):
+        current = compensator.command(target, position if mode.feedback else None, control_step_s if k else 0.0)
+        position = positions[k] = stage.step(current, control_step_s).measured_position_m
+    settled = positions[steps // 2:]
+    return (float(100.0 * abs(settled.mean() - target) / (high - low)),
+            float(1e6 * np.sqrt(np.mean((settled - settled.mean())**2))))
+
+
+def print_hold(identified: Identified, control_step_s: float) -> None:
+    """Hold setpoints in every mode and print the table."""
+    print(f"\nHolding a setpoint from rest, {HOLD_S:g} s: settled error [% of the stroke] at each fraction of the "
+          "stroke; the largest ripple [um RMS]")
+    print("| mode | " + " | ".join(f"{100 * fraction:g} %" for fraction in HOLD_FRACTIONS)
+          + " | largest | target % | result | ripple um |")
+    print("|---|" + "---|" * (len(HOLD_FRACTIONS) + 4))
+    for mode in modes(identified, control_step_s):
+        errors, ripples = zip(*(hold(identified, mode, control_step_s, fraction) for fraction in HOLD_FRACTIONS), strict=True)
+        target = HOLD_TARGETS_PCT[mode.feedback]
+        print(f"| {mode.name} | " + " | ".join(f"{error:.2f}" for error in errors)
+              + f" | {max(errors):.2f} | {target:g} | {'pass' if max(errors) <= target else 'FAIL'} "
+              f"| {max(ripples):.2f} |", flush=True)
+
+
 def modes(identified: Identified, control_step_s: float) -> list[Mode]:
-    """The table's modes: every model feedforward, then every model with the PI loop at the gains the
-    compensator derives from it (imc_gains, the compensator node's default)."""
+    """The table's modes: every model feedforward (the identified one also at TRACKING_FEEDFORWARD_LEAD_LIMIT, the
+    setting for continuous signals), then every model with the PI loop at the gains the compensator
+    derives from it (imc_gains, the compensator node's default)."""
     return ([Mode(model, False) for model in identified.models]
+            + [Mode(identified.models[-1], False, feedforward_lead_limit=TRACKING_FEEDFORWARD_LEAD_LIMIT)]
             + [Mode(model, True, **imc_gains(model.model, control_step_s)) for model in identified.models])
 
 
@@ -202,6 +251,7 @@ def main() -> int:
     for feedback, label in ((False, "feedforward"), (True, "with the PI loop")):
         met = "met" if best[feedback] <= TARGETS_PCT[feedback] else "NOT met"
         print(f"target {label}: at most {TARGETS_PCT[feedback]:g} % RMS: {met} (best {best[feedback]:.3f} %)")
+    print_hold(identified, args.control_step_s)
     if args.scan:
         print_scan(identified, args.control_step_s)
     print(f"\nwall time {time.perf_counter() - started:.1f} s")

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from sma_stage.commands.paper import evaluate_paper
+from sma_stage.control.compensator import TRACKING_FEEDFORWARD_LEAD_LIMIT
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.model import IdentifiedModel, forward, inverse, load_model_file
@@ -63,8 +64,8 @@ def compensation_demo(model_path: Path, out_dir: Path) -> dict[str, dict[str, fl
 class EndToEndSettings:
     """How the end-to-end run is paced and how long each part lasts (signal times in simulated s)."""
 
-    time_scale: float = 100.0          # simulated s per wall s: the stage's time_scale and the signals' pace
-    rate_hz: float = 100.0             # stage steps, joint_states and setpoints [Hz of wall time]
+    time_scale: float = 60.0           # simulated s per wall s: the stage's time_scale and the signals' pace
+    step_s: float = 0.1                # simulated s per stage step, control period and setpoint: a 10 Hz loop
     excite_duration_s: float = 1000.0  # the paper's identification signal
     excite_period_s: float = 250.0
     operators: int = 10
@@ -73,6 +74,16 @@ class EndToEndSettings:
     stroke_fraction: float = 0.8       # the setpoint spans this fraction of the measured stroke
     ready_timeout_s: float = 120.0     # [wall s] for the nodes to start
     refit_timeout_s: float = 120.0     # [wall s]
+
+    @property
+    def rate_hz(self) -> float:
+        """Stage steps per wall second: time_scale / step_s."""
+        return self.time_scale / self.step_s
+
+    @property
+    def control_rate_hz(self) -> float:
+        """Control periods, setpoints and excitation values per simulated second: 1 / step_s."""
+        return 1.0 / self.step_s
 
     def wall_s(self, simulated_s: float) -> float:
         """Nominal wall seconds for simulated_s."""
@@ -88,7 +99,7 @@ class TrackingRun:
     """One tracking run: time [s simulated, 0 where the signal starts, negative while settling], setpoint and
     measured position [m], the last current command [A] at each sample; errors [% of stroke] for t >= 0;
     the change of current_cmd from one message to the next over t >= 0 (RMS, 99th percentile) [% of
-    MAX_CURRENT_A]."""
+    MAX_CURRENT_A]; the pace the run achieved [simulated s per wall s]."""
 
     name: str
     t: np.ndarray
@@ -99,10 +110,11 @@ class TrackingRun:
     max_pct: float
     current_step_rms_pct: float = float("nan")
     current_step_p99_pct: float = float("nan")
+    pace: float = float("nan")  # simulated s per wall s achieved over the run
 
 
 class StageSession:
-    """The demo's own node: records joint_states and publishes a setpoint profile at rate_hz.
+    """The demo's own node: records joint_states and publishes a setpoint profile every step_s of simulated time.
 
     Times are the ROS clock's: simulated time, the stage's /clock, which also stamps joint_states (every
     node of the demo runs with use_sim_time); a profile is a function of it. time_scale only turns
@@ -129,7 +141,7 @@ class StageSession:
         node.create_subscription(JointState, "joint_states", self.on_state,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         node.create_subscription(Float64, "current_cmd", self.on_command, COMMAND_QOS)
-        node.create_timer(1.0 / settings.rate_hz, self.on_tick)
+        node.create_timer(settings.step_s, self.on_tick)
 
     def now_s(self) -> float:
         """The ROS clock [s]."""
@@ -223,7 +235,9 @@ def tracking_run(session: StageSession, name: str, stroke: tuple[float, float], 
     profile = validation_profile(middle - half_span, middle, half_span, settings.settle_s)
     lead_s = 2.0 * settings.settle_s
     session.prime(profile(0.0), settings.ready_timeout_s, check)
+    began = time.monotonic()
     start = session.drive(profile, lead_s + settings.run_s, check)
+    pace = (lead_s + settings.run_s) / (time.monotonic() - began)
     stamps, position = session.states_between(start, start + lead_s + settings.run_s)
     t = stamps - start
     setpoint = np.array([profile(value) for value in t])
@@ -232,7 +246,7 @@ def tracking_run(session: StageSession, name: str, stroke: tuple[float, float], 
     steps = current_steps_pct(session.commands_between(start + lead_s, start + lead_s + settings.run_s))
     return TrackingRun(name, t - lead_s, setpoint, position, session.commands_at(stamps),
                        float(scale * np.sqrt(np.mean(error**2))), float(scale * np.max(np.abs(error))),
-                       *steps)
+                       *steps, pace)
 
 
 def current_steps_pct(commands: np.ndarray) -> tuple[float, float]:
@@ -246,16 +260,19 @@ def current_steps_pct(commands: np.ndarray) -> tuple[float, float]:
 
 def node_parameters(settings: EndToEndSettings, work_dir: Path) -> dict[str, dict[str, object]]:
     """Overrides of config/<node>.yaml: the stage sped up by time_scale, every node on its simulated /clock
-    (so the identification, the lead and the PI loop count simulated seconds)."""
+    (so the identification, the lead and the PI loop count simulated seconds); one stage step per control
+    period, excitation value and setpoint (step_s simulated); feedforward with the lead limit for following a
+    continuous signal (the validation signal)."""
     return {
         "stage_node": {"rate_hz": settings.rate_hz, "time_scale": settings.time_scale, "command_timeout": 2.0,
                        "use_sim_time": True},
-        "compensator_node": {"rate_hz": 50.0, "feedback": False, "use_sim_time": True},
+        "compensator_node": {"rate_hz": settings.control_rate_hz, "feedback": False, "use_sim_time": True,
+                             "feedforward_lead_limit": TRACKING_FEEDFORWARD_LEAD_LIMIT},
         "identification_node": {"operators": settings.operators, "use_sim_time": True,
                                 "model_file": str(work_dir / "identified_model.yaml"),
                                 "excite_duration": settings.excite_duration_s,
                                 "excite_period": settings.excite_period_s,
-                                "excite_rate_hz": settings.rate_hz / settings.time_scale,
+                                "excite_rate_hz": settings.control_rate_hz,
                                 "record_bag": str(work_dir / "session_bag"), "bag_overwrite": True},
     }
 
@@ -305,28 +322,25 @@ def describe_diagnosis(report: dict) -> str:
             f"{sent} went to the compensator")
 
 
-RUN_ORDER = ("default, feedforward", "identified, feedforward", "default, PI loop", "identified, PI loop")
+RUN_ORDER = ("default, feedforward", "identified, feedforward", "identified, PI loop")
 
 
 def track_with_both_models(client: object, session: StageSession, stroke: tuple[float, float],
                            settings: EndToEndSettings, check: Callable[[], None],
                            identified: bool) -> dict[str, TrackingRun]:
-    """Tracking runs with the model ~/refit pushed (when it did), then with the default model reloaded
-    from its file; each feedforward and with the PI loop at the gains the compensator derives from the model
-    (its default tuning)."""
-    pi = {"feedback": True}
+    """Tracking runs with the model ~/refit pushed (when it did), feedforward and with the PI loop at the gains
+    the compensator derives from the model (its default tuning); then feedforward with the shipped default
+    model reloaded from its file, the model a user has before any refit."""
     runs = {}
     if identified:
         runs["identified, feedforward"] = tracking_run(session, "identified model, feedforward", stroke, settings,
                                                        check)
-        client.set_parameters("compensator", pi)
+        client.set_parameters("compensator", {"feedback": True})
         runs["identified, PI loop"] = tracking_run(session, "identified model, PI loop", stroke, settings, check)
-    client.set_parameters("compensator", {"model": "", "model_file": str(DEFAULT_MODEL), **pi})
+    client.set_parameters("compensator", {"model": "", "model_file": str(DEFAULT_MODEL), "feedback": False})
     ok, message = client.trigger("compensator/reload")
     if not ok:
         raise InputError(f"compensator ~/reload: {message}")
-    runs["default, PI loop"] = tracking_run(session, "default model, PI loop", stroke, settings, check)
-    client.set_parameters("compensator", {"feedback": False})
     runs["default, feedforward"] = tracking_run(session, "default model, feedforward", stroke, settings, check)
     return runs
 
@@ -426,7 +440,8 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
     seconds = result["seconds"]
     print(f"\n3. End to end: stage_node, compensator_node and identification_node as separate processes "
           f"(ROS_DOMAIN_ID {result['domain_id']}, logs in {result['work_dir']}); the simulated stage runs "
-          f"{settings.time_scale:g}x faster than real time, {settings.rate_hz:g} steps per wall second.")
+          f"{settings.time_scale:g}x faster than real time, {settings.rate_hz:g} steps per wall second; one step, "
+          f"one control period and one setpoint every {settings.step_s:g} s of simulated time.")
     print(f"   nodes launched before part 1, serving {seconds['start']:.1f} s later; ~/excite ({settings.excite_duration_s:g} s of the paper's "
           f"identification signal) and ~/refit took {seconds['excite_and_refit']:.1f} s")
     ident, valid = report["identification"], report["validation"]
@@ -438,10 +453,12 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
           f"{'holds' if result['compensator_holds_fit'] else 'does NOT hold'} the fitted parameters")
     print(f"   measured stroke {1e6 * low:.1f} to {1e6 * high:.1f} um; the paper's validation signal scaled to "
           f"{100 * settings.stroke_fraction:g} % of it, {settings.run_s:g} s, through the exact inverse alone "
-          f"(feedforward) and with the PI loop (the compensator's default: gains derived from the model); error "
+          f"(feedforward, feedforward_lead_limit {TRACKING_FEEDFORWARD_LEAD_LIMIT:g}: the setting for a continuous "
+          f"signal) and with the PI loop (the compensator's default: gains derived from the model); error "
           f"in % of the stroke, current_cmd's change from one message to the next in % of {MAX_CURRENT_A:g} A, "
-          f"plots in {out_dir / 'tracking.png'}:")
-    print(f"   {'compensator model, mode':40s} {'rms %':>8s} {'max %':>8s} {'step rms %':>11s} {'step p99 %':>11s}")
+          f"the pace achieved in simulated s per wall s (the stage's time_scale when every node keeps up), plots in {out_dir / 'tracking.png'}:")
+    print(f"   {'compensator model, mode':40s} {'rms %':>8s} {'max %':>8s} {'step rms %':>11s} {'step p99 %':>11s} "
+          f"{'pace':>6s}")
     for key in RUN_ORDER:
         run = result["runs"].get(key)
         if run is None:
@@ -449,7 +466,7 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
         else:
             still = np.ptp(run.current[np.isfinite(run.current)]) == 0.0
             print(f"   {key:40s} {run.rms_pct:8.2f} {run.max_pct:8.2f} {run.current_step_rms_pct:11.2f} "
-                  f"{run.current_step_p99_pct:11.2f}"
+                  f"{run.current_step_p99_pct:11.2f} {run.pace:6.1f}"
                   + (f"   (current_cmd stayed at {run.current[-1]:g} A throughout)" if still else ""))
     print(f"   wall time from the nodes' launch to their exit: {seconds['total']:.1f} s")
 

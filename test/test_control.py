@@ -45,7 +45,8 @@ def lag_input(current_a: float, joule_reference_a: float) -> float:
 def test_the_lead_undoes_a_first_order_lag_exactly(joule_reference_a):
     tau_s, dt_s = 8.0, 0.2
     setpoints = slow_setpoints(3000, dt_s)
-    core = Compensator(lagged(tau_s, joule_reference_a), LIMIT_A, lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+    core = Compensator(lagged(tau_s, joule_reference_a), LIMIT_A, feedforward_lead_limit=UNLIMITED,
+                       max_rate_a_per_s=0.0)
     reach = core.inverse.input_range  # the lag's drive: the Joule heating's range in the heating reading
     wanted = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=reach).run(setpoints)[0]
     kept = math.exp(-dt_s / tau_s)
@@ -65,7 +66,7 @@ def test_the_lead_tends_to_v_plus_tau_dv_dt_for_short_steps():
     tau_s, dt_s = 8.0, 0.001
     setpoints = slow_setpoints(20000, dt_s)[10000:]
     wanted = inverse_stream().run(setpoints)[0]
-    core = Compensator(lagged(tau_s), LIMIT_A, lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+    core = Compensator(lagged(tau_s), LIMIT_A, feedforward_lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
     currents = np.array([core.command(setpoint, None, dt_s) for setpoint in setpoints])
     expected = wanted[1:] + tau_s * np.diff(wanted) / dt_s
     settled = slice(6000, None)  # the lag starts idle, at 0 A: 6 s to catch up at the current limit
@@ -120,6 +121,7 @@ def test_pi_removes_a_constant_offset_of_the_plant():
     (lambda core: Compensator(MODEL, LIMIT_A, kp=-2.0), "kp"),
     (lambda core: Compensator(MODEL, -1.0), "max_current_a"),
     (lambda core: Compensator(MODEL, LIMIT_A, lead_limit=0.5), "lead_limit"),
+    (lambda core: Compensator(MODEL, LIMIT_A, feedforward_lead_limit=float("nan")), "feedforward_lead_limit"),
     (lambda core: setattr(core, "deadband_m", -1e-6), "deadband_m"),
     (lambda core: Compensator("not a model"), "IdentifiedModel"),
     (lambda core: core.set_model(IdentifiedModel(MODEL.parameters.replace(output_unit="mm"), MODEL.operators)),
@@ -164,16 +166,21 @@ def test_the_model_runs_on_from_the_state_it_carries():
     assert fresh.lag_state_a == 0.0 and not np.any(fresh.inverse.states)
 
 
-def test_the_lead_limit_bounds_the_lead_and_the_lag_then_follows_with_tau_over_the_limit():
-    tau_s, dt_s, limit = 10.0, 0.1, 3.0
-    core = Compensator(lagged(tau_s), LIMIT_A, lead_limit=limit, max_rate_a_per_s=0.0)
-    core.command(0.0, None, 0.0)
+@pytest.mark.parametrize("measured_m", [None, 0.0], ids=["feedforward", "loop"])
+def test_the_lead_limit_bounds_the_lead_and_the_lag_then_follows_with_tau_over_the_limit(measured_m):
+    """lead_limit bounds the lead with a measurement (the loop; kp = ki = 0 here), feedforward_lead_limit
+    without one."""
+    tau_s, dt_s, limit, other = 10.0, 0.1, 3.0, 7.0
+    limits = {"lead_limit": other, "feedforward_lead_limit": limit} if measured_m is None else \
+        {"lead_limit": limit, "feedforward_lead_limit": other}
+    core = Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0, deadband_m=0.0, **limits)
+    core.command(0.0, measured_m, 0.0)
     target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
-    current = core.command(1e-4, None, dt_s)
+    current = core.command(1e-4, measured_m, dt_s)
     assert current == pytest.approx(limit * target, rel=1e-12), "s + g (v* - s) from s = 0, g at the limit"
     states = []
     for _ in range(400):
-        core.command(1e-4, None, dt_s)
+        core.command(1e-4, measured_m, dt_s)
         states.append(core.lag_state_a)
     gap = target - np.array(states)
     rate = -np.log(gap[200] / gap[100]) / (100 * dt_s)  # the gap decays as exp(-t limit / tau)
@@ -186,11 +193,11 @@ def test_the_lead_works_over_the_hold_it_is_given_not_the_time_since_the_last_ca
     tau_s, hold_s = 10.0, 5.0
     target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
     for since_s in (0.0, 0.01, 0.7):
-        core = Compensator(lagged(tau_s), LIMIT_A, lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+        core = Compensator(lagged(tau_s), LIMIT_A, feedforward_lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
         current = core.command(1e-4, None, since_s, hold_s=hold_s)
         assert current == pytest.approx(target / (1.0 - math.exp(-hold_s / tau_s)), rel=1e-12), since_s
         assert current < LIMIT_A
-    by_default, given = (Compensator(lagged(tau_s), LIMIT_A, lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+    by_default, given = (Compensator(lagged(tau_s), LIMIT_A, feedforward_lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
                          for _ in range(2))
     assert by_default.command(1e-4, None, 3.0) == given.command(1e-4, None, 3.0, hold_s=3.0), "default: dt_s"
 

@@ -48,11 +48,11 @@ class Recorder:
 def first_command_bounds(model: IdentifiedModel, target_m: float, model_time_s: tuple[float, float]
                          ) -> tuple[float, float]:
     """The compensator's first command [A] for target_m after the stage rested at 0 A long enough for the lag
-    to cool (lead_limit 1: the model's inverse with no lead), for the model's drift time anywhere in
+    to cool (feedforward_lead_limit 1: the model's inverse with no lead), for the model's drift time anywhere in
     model_time_s [s after the push] (the same both ends without a drift)."""
     commands = []
     for elapsed_s in model_time_s:
-        compensator = Compensator(model, 5.0, lead_limit=1.0)
+        compensator = Compensator(model, 5.0, feedforward_lead_limit=1.0)
         compensator.follow_applied(0.0, elapsed_s)
         commands.append(compensator.command(target_m))
     return min(commands), max(commands)
@@ -61,7 +61,8 @@ def first_command_bounds(model: IdentifiedModel, target_m: float, model_time_s: 
 def start_system(nodes: NodeProcesses, model_file) -> None:
     nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0,
                                 "use_sim_time": True}, [CONFIG_DIR / "stage.yaml"])
-    nodes.start("compensator_node", {"rate_hz": 1.0, "use_sim_time": True, "feedback": False, "lead_limit": 1.0},
+    nodes.start("compensator_node", {"rate_hz": 1.0, "use_sim_time": True, "feedback": False,
+                                          "feedforward_lead_limit": 1.0},
                 [CONFIG_DIR / "compensator.yaml"])
     nodes.start("identification_node", {"excite_duration": EXCITE_S, "excite_rate_hz": 1.0, "operators": 5,
                                          "min_samples": 60, "model_file": str(model_file), "use_sim_time": True},

@@ -10,7 +10,8 @@ measurement is given (feedback):
                 more than 2 deadband_m (feedback only; measurement noise no longer reverses it)
     v*        = GPI inverse(target - drift offset now)          within the current limit [A]
     current   = the lead: the drive that brings the thermal lag's state s to v* over one step,
-                s + g (v* - s) with g = 1 / (1 - exp(-dt / tau)), g at most lead_limit (drive = v*
+                s + g (v* - s) with g = 1 / (1 - exp(-dt / tau)), g at most lead_limit with a
+                measurement, feedforward_lead_limit without (drive = v*
                 without a lag), clipped to the current limit, and changed by at most
                 max_rate_a_per_s * dt from the previous command (0: no rate limit)
 
@@ -21,10 +22,13 @@ into a current switching from rail to rail (bench/bench_tracking.py: 157 % of th
 command to the next). With lead_limit g, the lag's state follows v* with the time constant tau / g at
 most, the plant the PI loop sees; `imc_gains` tunes the loop for it (IMC, lambda = tau / g). The rate
 limit spreads the jump across the loop over a few steps, which the lag's own time constant makes
-harmless. The defaults (lead_limit 3, 1 A/s) come from the scans in bench/README.md, not from a
-datasheet: a larger lead limit tracks the validation signal better feedforward (1.86 % RMS at 10
-against 2.67 % at 3) but made the loop limit-cycle around a held setpoint on the simulator (10-17 um
-RMS against 1.3-1.7 um).
+harmless. Without a measurement (feedforward) no noise enters, and the lead has its own limit,
+feedforward_lead_limit, for a trade the loop does not have: on the simulator a higher one tracks a
+continuous signal better (1.86 % RMS at 10 against 2.67 % at 3) and holds a stepped setpoint worse
+(after a step from rest, the faster the wires were heated the further the stage ends from the model's
+static position at the same final current). The defaults (3 and 3, 1 A/s) and the scans behind them are
+in bench/README.md: in the loop a limit of 10 made the stage limit-cycle around a held setpoint (9-14 um
+RMS against 0.8-1.4 um at 3), and 5 did at a rate limit of 0.5 A/s.
 
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
 (sma_stage.model.effects):
@@ -74,6 +78,8 @@ def _non_negative(name: str, value: float) -> float:
 
 
 DEFAULT_LEAD_LIMIT = 3.0
+DEFAULT_FEEDFORWARD_LEAD_LIMIT = 3.0
+TRACKING_FEEDFORWARD_LEAD_LIMIT = 10.0  # feedforward_lead_limit for following a continuous signal
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
 
@@ -111,6 +117,16 @@ class _NonNegative:
         setattr(instance, self.slot, _non_negative(self.name, value))
 
 
+class _AtLeastOne(_NonNegative):
+    """A lead limit of the Compensator: a finite number >= 1, else InputError naming it."""
+
+    def __set__(self, instance: object, value: float) -> None:
+        number = finite_number(self.name, value)
+        if number < 1.0:
+            raise InputError(f"{self.name} must be at least 1, got {value!r}")
+        setattr(instance, self.slot, number)
+
+
 class Compensator:
     """Setpoint [m] (and measured position [m]) in, current [A] out; see the module's docstring.
 
@@ -123,28 +139,21 @@ class Compensator:
     ki = _NonNegative()  # integral gain [1/s]
     deadband_m = _NonNegative()  # half-width of the play on the loop's target [m]
     max_rate_a_per_s = _NonNegative()  # largest change of the current per second [A/s]; 0: no limit
+    lead_limit = _AtLeastOne()  # the lead's largest gain on a change of v* with a measurement (PI loop) [A/A]
+    feedforward_lead_limit = _AtLeastOne()  # the same without a measurement (feedforward) [A/A]
 
     def __init__(self, model: IdentifiedModel, max_current_a: float = 5.0, method: str = "exact",
                  kp: float = 0.0, ki: float = 0.0, lead_limit: float = DEFAULT_LEAD_LIMIT,
-                 deadband_m: float = DEFAULT_DEADBAND_M, max_rate_a_per_s: float = DEFAULT_MAX_RATE_A_PER_S) -> None:
+                 deadband_m: float = DEFAULT_DEADBAND_M, max_rate_a_per_s: float = DEFAULT_MAX_RATE_A_PER_S,
+                 feedforward_lead_limit: float = DEFAULT_FEEDFORWARD_LEAD_LIMIT) -> None:
         self.kp = kp
         self.ki = ki
         self.lead_limit = lead_limit
+        self.feedforward_lead_limit = feedforward_lead_limit
         self.deadband_m = deadband_m
         self.max_rate_a_per_s = max_rate_a_per_s
         self.set_model(model, max_current_a, method)
 
-    @property
-    def lead_limit(self) -> float:
-        """The largest gain of the lead on a change of v* [A/A], at least 1."""
-        return self._lead_limit
-
-    @lead_limit.setter
-    def lead_limit(self, value: float) -> None:
-        number = finite_number("lead_limit", value)
-        if number < 1.0:
-            raise InputError(f"lead_limit must be at least 1, got {value!r}")
-        self._lead_limit = number
 
     @property
     def model(self) -> IdentifiedModel:
@@ -225,7 +234,8 @@ class Compensator:
             self.target_m = self._pi_target(setpoint, finite_number("measured_m", measured_m), dt)
         self.drift_elapsed_s += dt
         lag_input = self._inverse.step(self.target_m - self._drift_offset())
-        self.command_a = self._rate_limited(self._lead(lag_input, dt), dt)
+        limit = self._feedforward_lead_limit if measured_m is None else self._lead_limit
+        self.command_a = self._rate_limited(self._lead(lag_input, dt, limit), dt)
         return self.command_a
 
     def _rate_limited(self, current: float, dt: float) -> float:
@@ -275,7 +285,7 @@ class Compensator:
         self._played_m = target if played is None else min(target + width, max(target - width, played))
         return self._played_m
 
-    def _lead(self, lag_input: float, dt: float) -> float:
+    def _lead(self, lag_input: float, dt: float, lead_limit: float) -> float:
         tau = self.tau_s
         if dt > 0.0:
             held = float(joule_heating(self.command_a, self._reference))
@@ -283,7 +293,7 @@ class Compensator:
         wanted = lag_input
         if self._hold_s > 0.0 and tau > 0.0:
             exact = lag_drive_for(self.lag_state_a, lag_input, self._hold_s, tau)
-            limit = self.lag_state_a + self._lead_limit * (lag_input - self.lag_state_a)
+            limit = self.lag_state_a + lead_limit * (lag_input - self.lag_state_a)
             wanted = exact if abs(exact - self.lag_state_a) <= abs(limit - self.lag_state_a) else limit
         low, high = self._inverse.input_range
         clipped = min(high, max(low, wanted))

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
@@ -142,6 +143,7 @@ class WorkerService:
         self._wake = self._node.create_guard_condition(lambda: None, callback_group=concurrent)
         self._node.create_service(service_type, f"{owner.get_fully_qualified_name()}/{name}", self._serve,
                                   callback_group=concurrent)
+        self._owner_context = owner.context
         self._executor = SingleThreadedExecutor(context=owner.context)
         self._executor.add_node(self._node)
         self._thread: threading.Thread | None = threading.Thread(target=self._spin, name=f"{name}-service",
@@ -173,6 +175,9 @@ class WorkerService:
             self._executor.spin()
         except ExternalShutdownException:
             pass
+        except RCLError:
+            if self._owner_context.ok():
+                raise  # not the shutdown race: rcl refused the wait set for another reason
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop serving (waits up to timeout_s for a running callback) and destroy the helper node; idempotent."""

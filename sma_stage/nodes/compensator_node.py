@@ -10,7 +10,7 @@ config/model_default.yaml. A new model is checked whole and refused whole (the o
 Control law: target = setpoint + kp e + integral(ki e dt), e = setpoint - measured position [m]
 (feedback only, the default; target = setpoint otherwise), through a play of half-width deadband; the
 model's inverse gives the current, with the lead that undoes a thermal lag (its gain at most
-lead_limit) and the drift's offset taken off, rate-limited to max_current_rate (see
+lead_limit in the loop, feedforward_lead_limit without it) and the drift's offset taken off, rate-limited to max_current_rate (see
 sma_stage.control.compensator). With tuning `imc` (the default) kp and ki are derived from the model in
 force (its lag, lead_limit and the control period 1/rate_hz: control.compensator.imc_gains) and follow
 every new model; with `manual` the kp and ki parameters are used. The integral
@@ -38,6 +38,7 @@ from std_srvs.srv import Trigger
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import (
     DEFAULT_DEADBAND_M,
+    DEFAULT_FEEDFORWARD_LEAD_LIMIT,
     DEFAULT_LEAD_LIMIT,
     DEFAULT_MAX_RATE_A_PER_S,
     checked_gains,
@@ -79,7 +80,9 @@ COMPENSATOR_PARAMS = [
     Param("tuning", "imc", "PI gains: 'imc' (derived from the model in force and rate_hz) or 'manual' (kp, ki)"),
     Param("kp", 1.0, "proportional gain on the position error [m/m] (tuning manual)", 0.0, 100.0),
     Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (tuning manual)", 0.0, 10000.0),
-    Param("lead_limit", DEFAULT_LEAD_LIMIT, "largest gain of the thermal-lag lead [A/A]", 1.0, 1e6),
+    Param("lead_limit", DEFAULT_LEAD_LIMIT, "largest gain of the thermal-lag lead in the PI loop [A/A]", 1.0, 1e6),
+    Param("feedforward_lead_limit", DEFAULT_FEEDFORWARD_LEAD_LIMIT, "largest gain of the thermal-lag lead in "
+          "feedforward (feedback false) [A/A]", 1.0, 1e6),
     Param("deadband", DEFAULT_DEADBAND_M, "half-width of the play on the loop's target [m] (a few sensor noise "
           "sigmas)", 0.0, 1e-2),
     Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of node-clock time]; "
@@ -138,14 +141,15 @@ class CompensatorNode(Node):
 
     def settings(self, model: IdentifiedModel, values: dict[str, object]) -> dict[str, float]:
         """The control core's loop settings from the node's parameter values and the model (InputError when
-        one is unusable): kp and ki (derived or manual), lead limit, deadband, rate limit."""
+        one is unusable): kp and ki (derived or manual), lead limits, deadband, rate limit."""
         if values["tuning"] not in TUNINGS:
             raise InputError(f"tuning must be one of {', '.join(TUNINGS)}, got {values['tuning']!r}")
         if values["tuning"] == "imc":
             gains = imc_gains(model, self.tuned_period_s, float(values["lead_limit"]))
         else:
             gains = checked_gains(values["kp"], values["ki"])
-        return {**gains, "lead_limit": float(values["lead_limit"]), "deadband_m": float(values["deadband"]),
+        return {**gains, "lead_limit": float(values["lead_limit"]),
+                "feedforward_lead_limit": float(values["feedforward_lead_limit"]), "deadband_m": float(values["deadband"]),
                 "max_rate_a_per_s": float(values["max_current_rate"])}
 
     def build_core(self, model: IdentifiedModel, values: dict[str, object]) -> Compensator:
