@@ -24,6 +24,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.time import Time as RosTime  # noqa: E402
 from rosgraph_msgs.msg import Clock as ClockMessage  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
@@ -782,6 +783,38 @@ def test_identification_record_bag_can_be_switched_while_running(ros, tmp_path):
     assert len(from_bag) == len(recorded) >= 30 and np.ptp(from_bag.input) > 4.0
     for column in ("t", "input", "output"):
         np.testing.assert_array_equal(getattr(from_bag, column), getattr(recorded, column))
+
+
+def test_compensator_control_period_counts_simulated_seconds_with_sim_time(ros):
+    """With use_sim_time the loop ticks every 1/rate_hz of /clock time: twenty 0.1 s clock steps in 0.2 s of
+    wall time give about twenty commands, and none come while the clock stands still for 1 s."""
+    compensator = compensator_node(ros, model_file=str(DEFAULT_MODEL_FILE), feedback=True, rate_hz=10.0,
+                                   use_sim_time=True)
+    probe = ros.probe()
+    clock_pub = probe.create_publisher(ClockMessage, "/clock", 10)
+    commands = Listener(probe, Float64, "current_cmd", COMMAND_QOS)
+    probe.create_publisher(JointState, "joint_states", STATE_SUBSCRIBE_QOS)
+    setpoint_pub = probe.create_publisher(Float64, "setpoint", COMMAND_QOS)
+    wait_until(lambda: compensator.count_publishers("/clock") >= 1 and compensator.count_publishers("setpoint") >= 1,
+               5.0, "discovery")
+
+    def publish_clock(seconds: float) -> None:
+        clock_pub.publish(ClockMessage(clock=RosTime(seconds=seconds).to_msg()))
+
+    publish_clock(1.0)
+    wait_until(lambda: compensator.get_clock().now().nanoseconds > 0, 5.0, "the first /clock")
+    compensator.measured_m = 1e-4
+    setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: commands.messages, 5.0, "the setpoint's command")
+    for step in range(1, 21):
+        publish_clock(1.0 + 0.1 * step)
+        time.sleep(0.01)
+    wait_until(lambda: compensator.get_clock().now().nanoseconds >= 3_000_000_000 - 1, 5.0, "the last /clock")
+    time.sleep(0.1)
+    fast = len(commands.messages)
+    time.sleep(1.0)
+    assert len(commands.messages) == fast, "no tick while simulated time stands still"
+    assert fast >= 16, f"a tick per 0.1 s of /clock time: {fast} commands for 2 s simulated in 0.2 s of wall time"
 
 
 def test_compensator_pi_loop_settles_the_simulated_stage_on_sim_time(ros):
