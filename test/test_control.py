@@ -202,6 +202,20 @@ def test_the_lead_works_over_the_hold_it_is_given_not_the_time_since_the_last_ca
     assert by_default.command(1e-4, None, 3.0) == given.command(1e-4, None, 3.0, hold_s=3.0), "default: dt_s"
 
 
+@pytest.mark.parametrize("method", ["exact", "analytic"])
+def test_finite_but_absurd_positions_give_a_command_within_the_limit(method):
+    """A setpoint or measurement of 1e308 (any publisher can send one) is beyond reach, not an overflow: the
+    command goes to the limit on the side of the target (the analytic inverse once gave NaN there, and the
+    clip turned it into full reverse current)."""
+    assert Compensator(MODEL, LIMIT_A, method).command(8.2e307) == LIMIT_A
+    assert Compensator(MODEL, LIMIT_A, method).command(-1.7e308) == -LIMIT_A
+    looped = Compensator(MODEL, LIMIT_A, method, kp=2.0, ki=1.0, max_rate_a_per_s=0.0)
+    assert looped.command(1e308, 0.0, 0.1) == LIMIT_A
+    assert looped.command(1e-4, 1e308, 0.1) == -LIMIT_A, "measured far above: drive down"
+    assert looped.command(1e-4, -1e308, 0.1) == LIMIT_A
+    assert math.isfinite(looped.integral_m)
+
+
 def test_the_loops_target_reverses_only_beyond_the_deadband():
     core = Compensator(MODEL, LIMIT_A, kp=1.0, deadband_m=1e-6, max_rate_a_per_s=0.0)
     first = core.command(1e-4, 1e-4, 0.1)

@@ -476,6 +476,27 @@ def test_compensator_pi_integrates_the_error_with_anti_windup(ros):
     wait_until(lambda: abs(probe.latest() - 2.0) > 1e-9, 1.0, "the command to leave saturation at once")
 
 
+@pytest.mark.parametrize("method", ["exact", "analytic"])
+def test_compensator_survives_finite_but_absurd_messages(ros, method):
+    """A joint_states position or a setpoint of 1e308 with kp 2 once overflowed the loop's target and took the
+    node down from its timer; now the command goes to the limit on the side of the target and the node runs on."""
+    compensator = compensator_node(ros, feedback=True, tuning="manual", kp=2.0, ki=0.1, rate_hz=50.0,
+                                   inverse_method=method)
+    probe = CompensatorProbe(ros, compensator)
+    probe.measure(1e308)
+    wait_until(lambda: compensator.measured_m == 1e308, 5.0, "the measured position")
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: probe.latest() == -5.0, 5.0, "full current down: the stage reads far above the setpoint")
+    probe.measure(0.0)
+    probe.setpoint_pub.publish(Float64(data=1e308))
+    wait_until(lambda: probe.latest() == 5.0, 5.0, "full current up: the setpoint is far above reach")
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: -5.0 < probe.latest() < 5.0, 5.0, "a command within the limits again")
+    count = len(probe.commands.messages)
+    wait_until(lambda: len(probe.commands.messages) > count + 5, 5.0, "the timer to go on commanding")
+    assert all(abs(message.data) <= 5.0 for message in probe.commands.messages)
+
+
 def config_overrides(name: str) -> list[Parameter]:
     """The parameters of config/<name>.yaml (its single node section) as overrides."""
     document = yaml.safe_load((REPO / "config" / f"{name}.yaml").read_text())

@@ -223,7 +223,7 @@ class Compensator:
         over dt_s [s], the time since the previous call (0 for a call at the same instant). hold_s [s]: how
         long this command will be held, the step the lead brings the lag's state to v* over (default: dt_s
         when above 0, else the previous hold; no lead before any)."""
-        setpoint = finite_number("setpoint_m", setpoint_m)
+        setpoint = self._bounded(finite_number("setpoint_m", setpoint_m))
         dt = _non_negative("dt_s", dt_s)
         if hold_s is not None:
             self._hold_s = _non_negative("hold_s", hold_s)
@@ -231,12 +231,19 @@ class Compensator:
             self._hold_s = dt
         self.target_m = setpoint
         if measured_m is not None:
-            self.target_m = self._pi_target(setpoint, finite_number("measured_m", measured_m), dt)
+            self.target_m = self._pi_target(setpoint, self._bounded(finite_number("measured_m", measured_m)), dt)
         self.drift_elapsed_s += dt
         lag_input = self._inverse.step(self.target_m - self._drift_offset())
         limit = self._feedforward_lead_limit if measured_m is None else self._lead_limit
         self.command_a = self._rate_limited(self._lead(lag_input, dt, limit), dt)
         return self.command_a
+
+    def _bounded(self, position_m: float) -> float:
+        """A position [m] within the inverse's target bounds (the model's reach and ten spans beyond): a finite
+        but absurd setpoint or measurement (1e308) gives the same command as one just beyond reach, and the
+        loop's arithmetic cannot overflow."""
+        low, high = self._inverse.target_bounds
+        return min(high, max(low, position_m))
 
     def _rate_limited(self, current: float, dt: float) -> float:
         """The current moved from the previous command by at most max_rate_a_per_s * dt (dt 0: not at all),

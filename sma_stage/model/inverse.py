@@ -14,6 +14,7 @@ from sma_stage.model.parameters import DEFAULT_OPERATORS, GPIParameters, check_o
 
 METHODS = ("exact", "analytic")
 RELATIVE_TOLERANCE = 1e-10  # solver stopping rule, ten times inside the 1e-9 promised
+TARGET_MARGIN_SPANS = 10.0  # targets are clipped this many output spans beyond the reach: no overflow, same answer
 SATURATED_TANH_ARGUMENT = 20.0
 
 
@@ -55,15 +56,21 @@ def check_input_range(params: GPIParameters, input_range: tuple[float, float] | 
     return low, high
 
 
-def output_span(params: GPIParameters, operators: int, input_range: tuple[float, float]) -> float:
-    """The model's output range over a full input sweep [output unit], the scale of the solver's tolerance.
+def output_reach(params: GPIParameters, operators: int, input_range: tuple[float, float]) -> tuple[float, float]:
+    """The lowest and highest model output over a full input sweep [output unit].
 
     Taken from the output itself, not from the envelopes: envelopes that cancel (a huge a1 with an
-    opposite a4) would otherwise make the tolerance far larger than the output.
+    opposite a4) would otherwise give a range far larger than the output's.
     """
     low, high = input_range
-    sweep = np.concatenate([np.linspace(low, high, 201), np.linspace(high, low, 201)])
-    return float(np.ptp(forward(sweep, params, operators))) or 1.0
+    outputs = forward(np.concatenate([np.linspace(low, high, 201), np.linspace(high, low, 201)]), params, operators)
+    return float(np.min(outputs)), float(np.max(outputs))
+
+
+def output_span(params: GPIParameters, operators: int, input_range: tuple[float, float]) -> float:
+    """The width of output_reach [output unit] (1 when the output is constant): the solver's tolerance scale."""
+    low, high = output_reach(params, operators, input_range)
+    return (high - low) or 1.0
 
 
 def check_invertible(params: GPIParameters, operators: int) -> None:
@@ -107,7 +114,10 @@ class GPIInverseStream:
         self.input_range = check_input_range(params, input_range)
         self._theta, self._thresholds, self._weights = model_arrays(params, self.operators)
         self._r_hat, self._p_hat = analytic_coefficients(params, self.operators)
-        self._tolerance = RELATIVE_TOLERANCE * output_span(params, self.operators, self.input_range)
+        reach_low, reach_high = output_reach(params, self.operators, self.input_range)
+        span = (reach_high - reach_low) or 1.0
+        self._tolerance = RELATIVE_TOLERANCE * span
+        self.target_bounds = (reach_low - TARGET_MARGIN_SPANS * span, reach_high + TARGET_MARGIN_SPANS * span)
         self._result = np.empty(3)
         self.last_clipped = 0
         self.reset(initial)
@@ -131,6 +141,7 @@ class GPIInverseStream:
         target = float(target)
         if not np.isfinite(target):
             raise InputError(f"target output must be finite, got {target}")
+        target = min(self.target_bounds[1], max(self.target_bounds[0], target))
         low, high = self.input_range
         if self.method == "exact":
             _kernels.exact_inverse_step(target, self._input, low, high, self._tolerance, self._theta,
@@ -144,7 +155,7 @@ class GPIInverseStream:
 
     def run(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Inputs [A] and clip flags for a whole target sequence, continuing from the current states."""
-        targets = as_signal(targets, "target output")
+        targets = np.clip(as_signal(targets, "target output"), *self.target_bounds)
         inputs, clipped = np.empty_like(targets), np.empty_like(targets)
         low, high = self.input_range
         if self.method == "exact":

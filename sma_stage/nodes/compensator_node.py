@@ -310,7 +310,11 @@ class CompensatorNode(Node):
         """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral), held for one control
         period (the lead's step)."""
         measured = self.measured_m if self.values["feedback"] else None
-        current = self.core.command(self.setpoint_m, measured, dt_s, hold_s=self.period_estimate_s)
+        try:
+            current = self.core.command(self.setpoint_m, measured, dt_s, hold_s=self.period_estimate_s)
+        except InputError as error:  # a core that cannot command (e.g. manual gains too large) keeps the last one
+            self.warnings.warn("command", f"current_cmd held at {self.command_a:g} A: {error}")
+            return self.command_a
         if self.inverse.last_clipped:
             self.clipped_count += 1
             self.warnings.warn("clipped", f"target {self.core.target_m:.4g} m is beyond the model's reach within "
