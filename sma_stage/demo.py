@@ -305,7 +305,12 @@ def excite_and_refit(client: object, session: StageSession, settings: EndToEndSe
         time.sleep(0.1)
     if not ok:
         raise InputError(f"~/refit: {message}")
-    return json.loads(message), (float(positions.min()), float(positions.max()))
+    from std_msgs.msg import String
+
+    from sma_stage.nodes._common import REPORT_QOS
+
+    report = client.latest(String, "identification/report", REPORT_QOS)
+    return json.loads(report.data), (float(positions.min()), float(positions.max()))
 
 
 def describe_diagnosis(report: dict) -> str:

@@ -39,7 +39,7 @@ from sma_stage.identify.metrics import error_metrics  # noqa: E402
 from sma_stage.io import load_series, write_csv  # noqa: E402
 from sma_stage.io.rosbag_io import _typestore  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, STATE_PUBLISH_QOS  # noqa: E402
-from sma_stage.nodes.identification_node import IdentificationNode  # noqa: E402
+from sma_stage.nodes.identification_node import IdentificationNode, report_json  # noqa: E402
 from sma_stage.nodes.launch import find_executable  # noqa: E402
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -184,8 +184,8 @@ def test_replayed_bag_refits_as_the_offline_fit(player_factory, bag):
     for column in ("t", "input", "output"):
         np.testing.assert_array_equal(getattr(live, column), getattr(offline["series"], column))
     answer = player.refit()
-    assert answer.success, answer.message
-    report = json.loads(answer.message)
+    assert answer.success and answer.message.startswith("refit ok: "), answer.message
+    report = json.loads(report_json(player.identification.last_report))  # what ~/report carries
     fit = offline["fit"]
     assert report["model"]["operators"] == fit.operators == OPERATORS
     assert report["samples"] == {"identification": len(offline["ident"]),

@@ -5,6 +5,7 @@ import itertools
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -239,6 +240,20 @@ def test_stage_parameter_ranges_are_enforced(ros):
     assert "rate_hz" in str(excinfo.value) and "\n" not in str(excinfo.value)
 
 
+def test_an_integer_is_taken_for_a_double_parameter_and_range_checked(ros):
+    """As users type it: `-p time_scale:=50` at start, `ros2 param set /stage max_current 4` while running."""
+    stage = stage_node(ros, time_scale=50, rate_hz=20)
+    assert stage.get_parameter("time_scale").value == 50.0
+    assert stage.get_parameter("time_scale").type_ == Parameter.Type.DOUBLE
+    assert stage.set_parameters([Parameter("max_current", value=4)])[0].successful
+    assert stage.get_parameter("max_current").value == 4.0
+    refused = stage.set_parameters([Parameter("max_current", value=50)])[0]
+    assert not refused.successful and stage.get_parameter("max_current").value == 4.0
+    assert not stage.set_parameters([Parameter("max_current", value="4")])[0].successful, "a string is not a number"
+    with pytest.raises(InputError, match=r"^parameter 'rate_hz' refused: 1000000.0 is outside its range 1.0 to 2000.0$"):
+        StageNode(context=ros.context, parameter_overrides=[Parameter("rate_hz", value=1000000)])
+
+
 def test_stage_with_sim_time_publishes_a_fast_clock(ros):
     stage_node(ros, rate_hz=100.0, time_scale=100.0, use_sim_time=True)
     listener = Listener(ros.probe(), ClockMessage, "/clock")
@@ -256,8 +271,10 @@ def test_stage_executable_refuses_an_out_of_range_parameter():
                           capture_output=True, text=True, timeout=60, env=env, cwd=REPO)
     assert done.returncode == 2
     assert "Traceback" not in done.stderr
-    lines = [line for line in done.stderr.splitlines() if line.startswith("error:")]
-    assert len(lines) == 1 and "rate_hz" in lines[0]
+    lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+    assert len(lines) == 1, lines
+    assert re.fullmatch(r"\[ERROR\] \[[0-9.]+\] \[stage\]: cannot start: parameter 'rate_hz' refused: "
+                        r"1000000\.0 is outside its range 1\.0 to 2000\.0", lines[0]), lines[0]
 
 
 def node_process(module: str, *ros_args: str) -> subprocess.Popen:
@@ -562,7 +579,12 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     time.sleep(0.1)
     answer = ros.call(probe, Trigger, "identification/refit", timeout=30.0)
     assert answer.success, answer.message
-    report = json.loads(answer.message)
+    wait_until(lambda: reports.messages, 5.0, "the report on ~/report")
+    report = json.loads(reports.messages[-1].data)
+    assert "\n" not in answer.message and len(answer.message) < 400, "~/refit answers with one line"
+    assert answer.message.startswith("refit ok: ") and str(model_file) in answer.message
+    assert report["report_file"] == str(tmp_path / "fitted.report.json") and report["report_file"] in answer.message
+    assert json.loads((tmp_path / "fitted.report.json").read_text()) == report
     assert set(report) >= {"model", "identification", "validation", "validation_source", "fit_seconds"}
     assert "held-out tail" in report["validation_source"]
     assert report["validation"]["samples"] == report["samples"]["validation"] > 10
@@ -570,8 +592,6 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     assert report["compensator"]["pushed"], report["compensator"]["message"]
     deployed = load_model_file(model_file)
     assert compensator.model == deployed and deployed.without_state().to_dict() == report["identified_model"]
-    wait_until(lambda: reports.messages, 5.0, "the report on ~/report")
-    assert json.loads(reports.messages[-1].data) == report
     recorded = identification.snapshot()
     assert len(recorded) == report["samples"]["identification"] + report["samples"]["validation"], "buffer frozen"
     identification.close_bag()
@@ -579,6 +599,13 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     assert len(from_bag) > len(recorded), "the bag records before and after the excitation too"
     assert np.ptp(from_bag.input) >= np.ptp(recorded.input) > 5.0
     print(json.dumps({key: report[key] for key in ("identification", "validation", "samples", "fit_seconds")}))
+
+
+def published_report(ros: Ros) -> dict:
+    """The identification node's latest report on ~/report (transient local: a new subscriber gets it)."""
+    reports = Listener(ros.probe(f"report_reader_{len(ros.nodes)}"), String, "identification/report", REPORT_QOS)
+    wait_until(lambda: reports.messages, 5.0, "the report on ~/report")
+    return json.loads(reports.messages[-1].data)
 
 
 class FakeStage:
@@ -659,7 +686,7 @@ def test_identification_refit_survives_a_candidate_that_cannot_be_fitted(ros, tm
     monkeypatch.setattr(identification, "snapshot", lambda: read_csv(DRIFT_UNFITTABLE, min_samples=60))
     answer = refit_answer(ros, ros.probe())
     assert answer.success, answer.message
-    report = json.loads(answer.message)
+    report = published_report(ros)
     candidates = {entry["effect"] for entry in report["diagnosis"]["candidates"]}
     assert candidates == {"thermal_lag", "delay", "rate", "drift"}, "every candidate reported, fitted or not"
     assert report["compensator"]["pushed"], report["compensator"]["message"]
@@ -686,7 +713,7 @@ def test_identification_refit_keeps_the_plain_fit_when_the_diagnosis_fails(ros, 
     wait_until(lambda: len(identification.outputs) == 120, 5.0, "120 recorded positions")
     answer = refit_answer(ros, fake.node)
     assert answer.success, answer.message
-    report = json.loads(answer.message)
+    report = published_report(ros)
     assert "diagnosis" not in report
     assert report["warnings"] == ["diagnosis failed, the plain GPI fit is kept: RuntimeError: a bug over two lines"]
     fitted = GPIParameters.from_dict(report["model"]["parameters"])
@@ -703,7 +730,7 @@ def test_identification_refit_without_a_compensator_warns_in_the_report(ros, tmp
     wait_until(lambda: len(identification.outputs) == 120, 5.0, "120 recorded positions")
     answer = refit_answer(ros, fake.node)
     assert answer.success, answer.message
-    report = json.loads(answer.message)
+    report = published_report(ros)
     assert not report["compensator"]["pushed"]
     assert any("no_such_compensator" in warning for warning in report["warnings"])
     assert report["model_file"] is None and report["identified_model"]["operators"] == 5
@@ -780,7 +807,7 @@ def test_identification_keeps_serving_during_a_refit(ros, monkeypatch):
     release.set()
     wait_until(first.done, 30.0, "the first refit")
     assert first.result().success, first.result().message
-    samples = json.loads(first.result().message)["samples"]
+    samples = published_report(ros)["samples"]
     total = samples["identification"] + samples["validation"]
     assert 95 <= total <= 100 and samples["identification"] == round(0.75 * total), "the recording as it was"
 
@@ -879,7 +906,7 @@ def test_identification_excites_and_refits_on_sim_time(ros):
     wait_until(lambda: not identification.exciting, 10.0, "the excitation to end on simulated time")
     answer = refit_answer(ros, probe)
     assert answer.success, answer.message
-    report = json.loads(answer.message)
+    report = published_report(ros)
     assert report["samples"]["identification"] + report["samples"]["validation"] >= 60
     t = identification.snapshot().t
     assert 250.0 <= t[-1] - t[0] <= 330.0, "the recording spans the signal's simulated duration"

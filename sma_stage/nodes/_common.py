@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import math
+import re
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -18,6 +19,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -78,20 +80,41 @@ def _parameter_type(value: object) -> int:
 
 
 def declare_all(node: Node, params: Sequence[Param]) -> dict[str, object]:
-    """Declare the parameters (values from overrides or params files); InputError naming the first bad one."""
+    """Declare the parameters (values from overrides or params files); InputError naming the first bad one.
+    An integer given for a double parameter (`-p time_scale:=50`, `ros2 param set ... max_current 5`) is taken
+    as that double, then range-checked like any other value."""
+    doubles = {param.name for param in params if _parameter_type(param.default) == ParameterType.PARAMETER_DOUBLE}
+    overrides = node._parameter_overrides  # rclpy keeps them here; no public way to read them before declaring
+    for name in doubles & set(overrides):
+        overrides[name] = _as_double(overrides[name])
+    node.add_pre_set_parameters_callback(
+        lambda changes: [_as_double(change) if change.name in doubles else change for change in changes])
     for param in params:
         try:
             node.declare_parameter(param.name, param.default, param.descriptor())
         except ParameterException as error:
-            raise InputError(f"node '{node.get_name()}': parameter '{param.name}' refused: {_reason(error)}") from None
+            raise InputError(f"parameter '{param.name}' refused: {_reason(error)}") from None
     return {param.name: node.get_parameter(param.name).value for param in params}
 
 
+def _as_double(parameter: Parameter) -> Parameter:
+    """An INTEGER parameter as the DOUBLE of the same value; any other unchanged."""
+    if parameter.type_ != Parameter.Type.INTEGER:
+        return parameter
+    return Parameter(parameter.name, Parameter.Type.DOUBLE, float(parameter.value))
+
+
+_RCLPY_RANGE = re.compile(r"out of range Min: (\S+), Max: (\S+), value: (\S+): \S+$")
+
+
 def _reason(error: ParameterException) -> str:
+    """rclpy's reason for refusing a parameter, in one line (its range message reworded)."""
     text = " ".join(str(error.args[0] if error.args else error).split())
     text = text.split("Reason: ", 1)[-1]
-    if "of type 'INTEGER', expecting type 'DOUBLE'" in text:
-        text += " (write it with a decimal point, e.g. 5.0)"
+    found = _RCLPY_RANGE.search(text)
+    if found:
+        low, high, value = found.groups()
+        return f"{value} is outside its range {low} to {high}"
     return text
 
 
@@ -213,7 +236,8 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
         gc.freeze()  # what start-up built lives on: the collector's passes stop walking it
         _spin(executor)
     except (InputError, ParameterException) as error:
-        print(f"error: {' '.join(str(error).split())}", file=sys.stderr)
+        name = getattr(make_node, "NODE_NAME", "sma_stage")
+        rclpy.logging.get_logger(name).error(f"cannot start: {' '.join(str(error).split())}")
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

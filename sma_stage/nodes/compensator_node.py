@@ -110,17 +110,19 @@ def model_from(values: dict[str, object], changed: str | None = None) -> tuple[I
 class CompensatorNode(Node):
     """Setpoint [m] in, current command [A] out, through the identified model's inverse (and a PI loop)."""
 
+    NODE_NAME = "compensator"
+
     def __init__(self, **node_options: object) -> None:
-        super().__init__("compensator", **node_options)
+        super().__init__(self.NODE_NAME, **node_options)
         self._lock = threading.RLock()
         try:
             self.values = declare_all(self, COMPENSATOR_PARAMS)
             self.period_estimate_s = self.tuned_period_s = 1.0 / float(self.values["rate_hz"])
             model, self.model_source = model_from(self.values)
             self.core = self.build_core(model, self.values)
-        except InputError as error:
+        except InputError:
             self.destroy_node()
-            raise InputError(f"node 'compensator': {error}") from None
+            raise
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.setpoint_m: float | None = None
         self.measured_m: float | None = None

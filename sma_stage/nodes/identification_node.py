@@ -42,6 +42,7 @@ from std_srvs.srv import Trigger
 from sma_stage.errors import InputError
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
+from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import plain_values
 from sma_stage.io.rosbag_io import joint_index, output_times
 from sma_stage.io.series import Series
@@ -114,6 +115,39 @@ def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, i
     return make_series(t, u, y, "recording", min_samples=min_samples)
 
 
+def report_json(report: dict) -> str:
+    """The refit's report as strict JSON (non-finite numbers as null)."""
+    return json.dumps(plain_values(report, non_finite_as_none=True))
+
+
+def report_path(model_file: str | None) -> str | None:
+    """Where the refit's report goes: beside the model file, `<model file without .yaml>.report.json`."""
+    if model_file is None:
+        return None
+    path = Path(model_file)
+    return str(path.with_name(path.name.removesuffix(".yaml").removesuffix(".yml") + ".report.json"))
+
+
+def refit_summary(report: dict) -> str:
+    """~/refit's one-line answer: the effects named, the held-out error before and after, where the model and
+    the report went, whether the compensator took the model, and the warnings."""
+    diagnosis = report.get("diagnosis")
+    validation = report["validation"]
+    if diagnosis is not None:
+        named = ", ".join(diagnosis["effects"]) or "no effect"
+        before = diagnosis["before"]["validation"]["rms_pct"]
+        after = diagnosis["after"]["validation"]["rms_pct"]
+        error = f"{named} added; held-out RMS {before:.3g} % -> {after:.3g} %"
+    else:
+        error = f"no diagnosis; held-out RMS {validation['rms_pct']:.3g} %"
+    parts = [f"refit ok: {report['model']['operators']} operators, {error}",
+             f"model {report['model_file'] or 'not written (model_file empty)'}",
+             f"report {report['report_file'] or 'on ~/report only'}",
+             "pushed to the compensator" if report["compensator"]["pushed"] else "NOT pushed to the compensator"]
+    parts += [f"warning: {warning}" for warning in report["warnings"]]
+    return "; ".join(parts)
+
+
 class BagThread:
     """A BagRecorder driven from one thread of its own (the sqlite3 storage must stay in the thread that
     opened it, while the executor calls back from several)."""
@@ -163,8 +197,10 @@ class BagThread:
 class IdentificationNode(Node):
     """Records the stage's input and output, excites it, and refits the GPI model on request."""
 
+    NODE_NAME = "identification"
+
     def __init__(self, **node_options: object) -> None:
-        super().__init__("identification", **node_options)
+        super().__init__(self.NODE_NAME, **node_options)
         self._lock = threading.Lock()
         self.recorder: BagThread | None = None
         self.refit_service: WorkerService | None = None
@@ -173,9 +209,9 @@ class IdentificationNode(Node):
             self.check_storage(str(self.values["bag_storage"]))
             self.open_bag(str(self.values["record_bag"]), str(self.values["bag_storage"]),
                           bool(self.values["bag_overwrite"]))
-        except InputError as error:
+        except InputError:
             self.destroy_node()
-            raise InputError(f"node 'identification': {error}") from None
+            raise
         self.inputs: deque[tuple[int, float]] = deque(maxlen=int(self.values["max_samples"]))
         self.outputs: deque[tuple[int, int, float]] = deque(maxlen=int(self.values["max_samples"]))
         self.excite_start_ns: int | None = None
@@ -426,11 +462,10 @@ class IdentificationNode(Node):
         finally:
             with self._lock:
                 self.refitting = False
-        text = json.dumps(plain_values(report, non_finite_as_none=True))
         self.last_report = report
-        self.report_pub.publish(String(data=text))
-        response.success, response.message = True, text
-        self.get_logger().info(f"refit done in {report['fit_seconds']:.2f} s; {'; '.join(report['warnings']) or 'ok'}")
+        self.report_pub.publish(String(data=report_json(report)))
+        response.success, response.message = True, refit_summary(report)
+        self.get_logger().info(f"~/refit: {response.message}")
         return response
 
     def refit(self) -> dict:
@@ -442,10 +477,21 @@ class IdentificationNode(Node):
                                    source="identification node ~/refit")
         report = found.report
         report["model_file"] = self.write_model(found.model)
+        report["report_file"] = report_path(report["model_file"])
         report["compensator"] = self.push(found.model)
         if not report["compensator"]["pushed"]:
             report["warnings"].append(report["compensator"]["message"])
+        if report["report_file"] is not None:
+            self.write_report(report)
         return report
+
+    def write_report(self, report: dict) -> None:
+        """Write the JSON report beside the model file, atomically; a failure is a warning in the report."""
+        try:
+            atomic_write_text(report["report_file"], report_json(report) + "\n")
+        except OSError as error:
+            report["warnings"].append(f"cannot write {report['report_file']}: {error.strerror or error}")
+            report["report_file"] = None
 
     def write_model(self, model: IdentifiedModel) -> str | None:
         """Write the identified model's file atomically (None when model_file is empty)."""

@@ -99,9 +99,10 @@ class NodeProcess:
         return "\n".join(text.splitlines()[-lines:])
 
     def failure(self) -> str:
-        """One line saying how it ended: its own 'error:' line, else its last line, and where the log is."""
+        """One line saying how it ended: its own error line (logged [ERROR]/[FATAL], or 'error:' before ROS
+        started), else its last line, and where the log is."""
         lines = [line.strip() for line in self.log_tail(50).splitlines() if line.strip()]
-        errors = [line for line in lines if line.startswith("error:")]
+        errors = [line for line in lines if line.startswith(("error:", "[ERROR]", "[FATAL]"))]
         detail = errors[-1] if errors else (lines[-1] if lines else "no output")
         return f"{self.name} exited with status {self.popen.returncode}: {detail} (log: {self.log_path})"
 
@@ -243,6 +244,21 @@ class RosClient:
 
         response = self.call(Trigger, name, Trigger.Request(), timeout_s)
         return bool(response.success), str(response.message)
+
+    def latest(self, message_type: object, topic: str, qos: object, timeout_s: float = 5.0) -> Any:
+        """The latest message on a transient-local topic (e.g. identification/report), waited for up to
+        timeout_s; TimeoutError when none came."""
+        received: list[Any] = []
+        subscription = self.node.create_subscription(message_type, topic, received.append, qos)
+        try:
+            deadline = time.monotonic() + timeout_s
+            while not received:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"no message on {topic} within {timeout_s:g} s")
+                time.sleep(0.02)
+            return received[-1]
+        finally:
+            self.node.destroy_subscription(subscription)
 
     def set_parameters(self, node_name: str, values: Mapping[str, Any], timeout_s: float = 5.0) -> None:
         """Set parameters of another node atomically; InputError with its reason when refused."""

@@ -74,7 +74,7 @@ STAGE_PARAMS = [
 def check_backend(name: str) -> str:
     """The backend name, refused unless it is one this node knows."""
     if name not in BACKENDS:
-        raise InputError(f"parameter 'backend' of node 'stage': unknown backend {name!r} (known: {', '.join(BACKENDS)})")
+        raise InputError(f"parameter 'backend': unknown backend {name!r} (known: {', '.join(BACKENDS)})")
     return name
 
 
@@ -84,8 +84,10 @@ MAX_CATCH_UP_STEPS = 5
 class StageNode(Node):
     """The stage: a current command in, the stage position out, with clamping and a watchdog."""
 
+    NODE_NAME = "stage"
+
     def __init__(self, **node_options: object) -> None:
-        super().__init__("stage", **node_options)
+        super().__init__(self.NODE_NAME, **node_options)
         try:
             values = declare_all(self, STAGE_PARAMS)
             check_backend(values["backend"])
