@@ -822,7 +822,11 @@ def test_identification_record_bag_can_be_switched_while_running(ros, tmp_path):
     bag = tmp_path / "live"
     assert identification.set_parameters([Parameter("record_bag", value=str(bag))])[0].successful
     fake = FakeStage(ros, identification)
-    fake.publish(np.linspace(-3.0, 3.0, 40))
+    fake.publish(np.linspace(-3.0, 3.0, 20))
+    wait_until(lambda: len(identification.outputs) == 20, 5.0, "20 recorded positions")
+    refused = identification.set_parameters([Parameter("record_bag", value=str(taken))])[0]
+    assert not refused.successful and identification.get_parameter("record_bag").value == str(bag)
+    fake.publish(np.linspace(3.0, -3.0, 20))
     wait_until(lambda: len(identification.outputs) == 40, 5.0, "40 recorded positions")
     assert identification.set_parameters([Parameter("record_bag", value="")])[0].successful
     from_bag = read_bag(bag, min_samples=10, input_topic="current_applied")

@@ -242,8 +242,11 @@ class IdentificationNode(Node):
 
     def open_bag(self, path: str, storage: str, overwrite: bool) -> None:
         """Start recording into a new rosbag2 directory (none for an empty path)."""
-        if path:
-            self.recorder = BagThread(Path(path), storage, overwrite, str(self.values["input_topic"]))
+        self.recorder = self.new_recorder(path, storage, overwrite)
+
+    def new_recorder(self, path: str, storage: str, overwrite: bool) -> BagThread | None:
+        """A recorder into a new rosbag2 directory (None for an empty path); InputError when it cannot be."""
+        return BagThread(Path(path), storage, overwrite, str(self.values["input_topic"])) if path else None
 
     def close_bag(self) -> None:
         """Finish the bag being recorded (renamed into place)."""
@@ -254,16 +257,20 @@ class IdentificationNode(Node):
                 self.get_logger().info(f"bag written: {path}")
 
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
-        """Check changes; a new record_bag closes the current bag and starts the new one."""
+        """Check changes; a new record_bag starts the new bag, then finishes the current one (a bag that cannot
+        be started is refused and the current one records on)."""
         candidate = {**self.values, **{change.name: change.value for change in changes}}
         try:
             self.check_storage(str(candidate["bag_storage"]))
-            if candidate["record_bag"] != self.values["record_bag"]:
-                self.close_bag()
-                self.open_bag(str(candidate["record_bag"]), str(candidate["bag_storage"]),
-                              bool(candidate["bag_overwrite"]))
+            switch = candidate["record_bag"] != self.values["record_bag"]
+            if switch:
+                started = self.new_recorder(str(candidate["record_bag"]), str(candidate["bag_storage"]),
+                                            bool(candidate["bag_overwrite"]))
         except (InputError, OSError) as error:
             return SetParametersResult(successful=False, reason=" ".join(str(error).split()))
+        if switch:
+            self.close_bag()
+            self.recorder = started
         self.values = candidate
         return SetParametersResult(successful=True)
 
