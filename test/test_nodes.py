@@ -229,6 +229,23 @@ def test_stage_stop_latches_until_resume(ros):
     wait_until(lambda: stage.applied_a == 0.5, 5.0, "a command after resume")
 
 
+def test_stage_watchdog_keeps_quiet_while_stopped(ros):
+    """After ~/stop the commands that keep coming are ignored; the watchdog must not then report them missing
+    (it once warned 'no current command' about 1 s after ~/stop while a compensator published at 50 Hz)."""
+    stage = stage_node(ros, rate_hz=100.0, command_timeout=0.3)
+    probe = ros.probe()
+    send = command_publisher(probe)
+    wait_until(lambda: stage.count_publishers("current_cmd") >= 1, 5.0, "the command publisher")
+    send(1.0)
+    wait_until(lambda: stage.applied_a == 1.0, 5.0, "the commanded current")
+    assert ros.call(probe, Trigger, "stage/stop").success
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline:
+        send(1.0)
+        time.sleep(0.02)
+        assert not stage.watchdog_tripped and stage.applied_a == 0.0
+
+
 def test_stage_parameter_ranges_are_enforced(ros):
     stage = stage_node(ros)
     result = stage.set_parameters([Parameter("max_current", value=50.0)])[0]

@@ -160,7 +160,7 @@ class StageNode(Node):
 
     def current_to_apply(self) -> float:
         """The current [A] for this step: zero when stopped or when the command is stale."""
-        stale = self.command_age_s() > self.command_timeout_s
+        stale = self.command_age_s() > self.command_timeout_s and not self.stopped  # stopped: zero for that reason
         if stale and not self.watchdog_tripped and self.last_command is not None:
             self.get_logger().warning(f"no current command for {self.command_timeout_s:g} s: current set to zero")
         self.watchdog_tripped = stale
