@@ -246,6 +246,29 @@ def test_stage_watchdog_keeps_quiet_while_stopped(ros):
         assert not stage.watchdog_tripped and stage.applied_a == 0.0
 
 
+def test_timer_callbacks_end_quietly_once_the_context_is_shut_down():
+    """Ctrl-C shuts the context down under a running timer; its publish then raised and the executor logged
+    a FATAL (once in five SIGINTs to a compensator republishing its command). The node's timer callbacks, as
+    registered, now end quietly then; before shutdown an error still goes through."""
+    context = Context()
+    rclpy.init(context=context, domain_id=unique_domain())
+    compensator = CompensatorNode(context=context, parameter_overrides=[Parameter("feedback", value=False)])
+    stage = StageNode(context=context)
+    try:
+        compensator.setpoint_m = 1e-4
+        callbacks = [timer.callback for node in (compensator, stage) for timer in node.timers]
+        assert len(callbacks) == 3
+        for callback in callbacks:
+            callback()  # the context is up: they publish
+        context.try_shutdown()
+        for callback in callbacks:
+            callback()
+    finally:
+        compensator.destroy_node()
+        stage.destroy_node()
+        context.try_shutdown()
+
+
 def test_stage_parameter_ranges_are_enforced(ros):
     stage = stage_node(ros)
     result = stage.set_parameters([Parameter("max_current", value=50.0)])[0]

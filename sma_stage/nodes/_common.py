@@ -118,6 +118,19 @@ def _reason(error: ParameterException) -> str:
     return text
 
 
+def quiet_on_shutdown(node: Node, callback: Callable[[], None]) -> Callable[[], None]:
+    """A timer callback that ends quietly when Ctrl-C/SIGTERM shut the node's context down under it (a publish
+    then raises, and the executor logged it as FATAL); any other exception goes on."""
+    def run() -> None:
+        try:
+            callback()
+        except Exception:
+            if node.context.ok():
+                raise
+
+    return run
+
+
 def finite(value: float) -> bool:
     """True for a finite float (not NaN, not +-inf)."""
     return isinstance(value, (int, float)) and math.isfinite(value)

@@ -57,6 +57,7 @@ from sma_stage.nodes._common import (
     declare_all,
     exit_with,
     finite,
+    quiet_on_shutdown,
     run_node,
 )
 from sma_stage.nodes.launch import CONFIG_DIR
@@ -138,7 +139,7 @@ class CompensatorNode(Node):
         self.create_subscription(Float64, "current_applied", self.on_current_applied, COMMAND_QOS)
         self.create_service(Trigger, "~/reload", self.on_reload)
         self.period_s = 1.0 / float(self.values["rate_hz"])
-        self.create_timer(self.period_s, self.on_tick, clock=self.control_clock())
+        self.create_timer(self.period_s, quiet_on_shutdown(self, self.on_tick), clock=self.control_clock())
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
 
     def settings(self, model: IdentifiedModel, values: dict[str, object]) -> dict[str, float]:

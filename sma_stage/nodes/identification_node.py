@@ -58,6 +58,7 @@ from sma_stage.nodes._common import (
     WorkerService,
     declare_all,
     exit_with,
+    quiet_on_shutdown,
     run_node,
 )
 from sma_stage.signals import paper_identification_signal
@@ -363,7 +364,8 @@ class IdentificationNode(Node):
             self.record_until_ns = None
         self.excite_start_ns = self.now_ns()
         self.set_compensator_enabled(False)
-        self.excite_timer = self.create_timer(1.0 / float(self.values["excite_rate_hz"]), self.on_excite_tick)
+        self.excite_timer = self.create_timer(1.0 / float(self.values["excite_rate_hz"]),
+                                              quiet_on_shutdown(self, self.on_excite_tick))
         self.on_excite_tick()
         response.success = True
         response.message = (f"exciting: {self.values['excite_amplitude_start']:g} A falling to "

@@ -39,6 +39,7 @@ from sma_stage.nodes._common import (
     declare_all,
     exit_with,
     finite,
+    quiet_on_shutdown,
     run_node,
 )
 from sma_stage.plant import Effects, StageConfig, StageSimulator
@@ -120,8 +121,8 @@ class StageNode(Node):
         self.create_subscription(Float64, "current_cmd", self.on_command, COMMAND_QOS)
         self.create_service(Trigger, "~/stop", self.on_stop)
         self.create_service(Trigger, "~/resume", self.on_resume)
-        self.create_timer(1.0 / self.rate_hz, self.on_tick, clock=self.steady)
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self.publish_diagnostics, clock=self.steady)
+        self.create_timer(1.0 / self.rate_hz, quiet_on_shutdown(self, self.on_tick), clock=self.steady)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics), clock=self.steady)
         self.get_logger().info(f"stage ready: backend sim, {self.rate_hz:g} Hz, "
                                f"{self.sim_dt_s:g} s simulated per step, max_current {self.max_current:g} A")
 
