@@ -7,12 +7,13 @@ document is the only thing on standard output.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from sma_stage.errors import InputError
+from sma_stage.io.plain import strict_json
 from sma_stage.model.parameters import DEFAULT_OPERATORS, check_operators
 
 EXIT_BAD_INPUT = 2
@@ -44,9 +45,16 @@ def round_count(text: str) -> int:
     return int(text)
 
 
+class OneLineErrors(argparse.ArgumentParser):
+    """An argument parser whose errors are one line on standard error (no usage block), exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with one subparser per command."""
-    parser = argparse.ArgumentParser(prog="gpi_tool", description=__doc__.splitlines()[0])
+    parser = OneLineErrors(prog="gpi_tool", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     paper = commands.add_parser("paper", help="evaluate the paper's Table 1 and write what it finds")
     paper.add_argument("--operators", type=operator_count, default=DEFAULT_OPERATORS)
@@ -132,8 +140,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("gpi_tool: interrupted", file=sys.stderr)
         return 130
     if getattr(args, "json", False):
-        json.dump(result, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        sys.stdout.write(strict_json(result, indent=2) + "\n")
     return 0
 
 

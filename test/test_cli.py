@@ -75,10 +75,13 @@ def test_simulate_writes_a_csv_that_fit_can_read(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("arguments", [["--effect", "bogus=1"], ["--effect", "sensor_delay_s"],
-                                       ["--set", "flexure_stiffness_n_m=-1"]])
+                                       ["--set", "flexure_stiffness_n_m=-1"], ["--rate-hz", "inf"],
+                                       ["--rate-hz", "nan"], ["--duration", "inf"], ["--duration", "1e12"],
+                                       ["--seed", "-1"]])
 def test_simulate_refuses_bad_settings(arguments, tmp_path, capsys):
     assert main(["simulate", "--input", "validation", "--out", str(tmp_path / "s.csv"), *arguments]) == 2
-    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith("gpi_tool: error: "), error
     assert not (tmp_path / "s.csv").exists()
 
 
@@ -122,3 +125,25 @@ def test_diagnose_refuses_a_bad_holdout_or_round_count(arguments, message, tmp_p
         main(["diagnose", str(tmp_path / "ident.csv"), "--out", str(out), *arguments])
     assert exit_status.value.code == 2
     assert message in capsys.readouterr().err and not out.exists()
+
+
+def test_json_output_is_strict_json_even_with_non_finite_numbers(data, tmp_path, capsys, monkeypatch):
+    """A standard error or validation error of inf once printed as `Infinity`, which strict JSON parsers refuse."""
+    import sma_stage.commands.identify as identify_command
+
+    monkeypatch.setattr(identify_command, "run_fit", lambda args: {"a9": float("inf"), "rms": np.float64("nan")})
+    assert main(["fit", str(data[0]), "--json"]) == 0
+
+    def refuse(constant):
+        raise ValueError(f"not strict JSON: {constant}")
+
+    assert json.loads(capsys.readouterr().out, parse_constant=refuse) == {"a9": None, "rms": None}
+
+
+def test_argument_errors_are_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stopped:
+        main(["simulate", "--input", "validation", "--rate-hz", "abc", "--out", str(tmp_path / "s.csv")])
+    assert stopped.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error == ["gpi_tool simulate: error: argument --rate-hz: invalid float value: 'abc' "
+                     "(see gpi_tool simulate --help)"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 import numpy as np
 
@@ -13,6 +14,7 @@ from sma_stage.plant import Effects, StageConfig, simulate
 from sma_stage.signals import IDENTIFICATION_DURATION_S, paper_identification_signal, paper_validation_signal
 
 SIGNALS = {"identification": paper_identification_signal, "validation": paper_validation_signal}
+MAX_SAMPLES = 10_000_000  # about 0.5 GB of CSV and a few minutes of simulation
 
 
 def parse_settings(items: list[str] | None, what: str) -> dict[str, float]:
@@ -32,8 +34,12 @@ def parse_settings(items: list[str] | None, what: str) -> dict[str, float]:
 def input_signal(args: argparse.Namespace) -> tuple[np.ndarray, float]:
     """The current sequence [A] and its sample period [s] from --input (a signal name or a CSV file)."""
     if args.input in SIGNALS:
-        if not (args.rate_hz > 0 and args.duration > 0):
-            raise InputError("--rate-hz and --duration must be positive")
+        if not (0.0 < args.rate_hz < math.inf and 0.0 < args.duration < math.inf):
+            raise InputError("--rate-hz and --duration must be positive and finite")
+        samples = args.duration * args.rate_hz
+        if samples > MAX_SAMPLES:
+            raise InputError(f"--duration {args.duration:g} s at --rate-hz {args.rate_hz:g} is {samples:.3g} samples; "
+                             f"simulate writes at most {MAX_SAMPLES:,} (shorten the run or lower the rate)")
         dt = 1.0 / args.rate_hz
         t = np.arange(0.0, args.duration, dt)
         return SIGNALS[args.input](t), dt

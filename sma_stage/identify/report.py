@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +10,7 @@ from sma_stage.identify.diagnosis import Diagnosis
 from sma_stage.identify.fit import FitResult
 from sma_stage.identify.metrics import ErrorMetrics
 from sma_stage.io.atomic import atomic_write_text
+from sma_stage.io.plain import strict_json
 from sma_stage.io.series import Series
 from sma_stage.model.parameters import MODEL_KIND
 
@@ -33,8 +33,8 @@ def fit_report(fit: FitResult, validation: ErrorMetrics | None, validation_sourc
 
 
 def write_json(path: Path, report: dict) -> None:
-    """The report as indented JSON, atomically."""
-    atomic_write_text(path, json.dumps(report, indent=2) + "\n")
+    """The report as indented strict JSON (non-finite numbers as null), atomically."""
+    atomic_write_text(path, strict_json(report, indent=2) + "\n")
 
 
 def markdown_summary(report: dict, title: str) -> str:

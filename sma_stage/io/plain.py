@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -19,3 +20,8 @@ def plain_values(value: object, non_finite_as_none: bool = False) -> object:
     if non_finite_as_none and isinstance(value, float) and not math.isfinite(value):
         return None
     return value
+
+
+def strict_json(value: object, indent: int | None = None) -> str:
+    """The value as strict JSON text: numpy scalars as numbers, NaN and inf as null (never `Infinity`)."""
+    return json.dumps(plain_values(value, non_finite_as_none=True), indent=indent, allow_nan=False)

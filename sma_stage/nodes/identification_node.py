@@ -24,7 +24,6 @@ output time; output times are the JointState header stamps unless they run on an
 
 from __future__ import annotations
 
-import json
 import queue
 import threading
 from collections import deque
@@ -43,7 +42,7 @@ from sma_stage.errors import InputError
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
-from sma_stage.io.plain import plain_values
+from sma_stage.io.plain import strict_json
 from sma_stage.io.rosbag_io import joint_index, output_times
 from sma_stage.io.series import Series
 from sma_stage.model import IdentifiedModel
@@ -118,7 +117,7 @@ def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, i
 
 def report_json(report: dict) -> str:
     """The refit's report as strict JSON (non-finite numbers as null)."""
-    return json.dumps(plain_values(report, non_finite_as_none=True))
+    return strict_json(report)
 
 
 def report_path(model_file: str | None) -> str | None:

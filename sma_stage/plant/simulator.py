@@ -82,7 +82,9 @@ class StageSimulator:
         self.effects = effects if effects is not None else Effects()
         if not isinstance(self.config, StageConfig) or not isinstance(self.effects, Effects):
             raise InputError("config must be a StageConfig and effects an Effects")
-        self.seed = seed
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputError(f"seed must be a whole number >= 0, got {seed!r}")
+        self.seed = int(seed)
         self._parameters = pack_parameters(self.config, self.effects)
         self._current, self._reading, self._noise = np.zeros(1), np.zeros(1), np.zeros(1)
         self._outputs = _allocate(1)
