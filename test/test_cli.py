@@ -1,6 +1,7 @@
 """gpi_tool from the outside: exit status, JSON on stdout only, one-line errors, files written."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -147,3 +148,36 @@ def test_argument_errors_are_one_line(tmp_path, capsys):
     error = capsys.readouterr().err.strip().splitlines()
     assert error == ["gpi_tool simulate: error: argument --rate-hz: invalid float value: 'abc' "
                      "(see gpi_tool simulate --help)"]
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e-8, 1e8, 1e90])
+def test_the_fit_does_not_depend_on_the_output_unit(data, tmp_path, capsys, scale):
+    """The same record in another unit fits the same (the fit works on the output scaled to unit span):
+    an output of 1e-12 m span once fitted at 36 % RMS and one of 1e200 raised LinAlgError."""
+    records = np.loadtxt(data[0], delimiter=",", skiprows=1)
+    records[:, 2] *= scale
+    scaled = tmp_path / "scaled.csv"
+    np.savetxt(scaled, records, delimiter=",", header="t,input,output", comments="", fmt="%.17g")
+    assert main(["fit", str(data[0]), "--operators", "5", "--json"]) == 0
+    reference = json.loads(capsys.readouterr().out)
+    assert main(["fit", str(scaled), "--operators", "5", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["identification"]["rms_pct"] == pytest.approx(reference["identification"]["rms_pct"], rel=1e-3)
+
+
+@pytest.mark.parametrize(("column", "factor", "message"), [
+    ("output", 1e-300, "the output's largest magnitude is .* outside 1e-100 to 1e\\+100"),
+    ("output", 1e300, "the output's largest magnitude is .* outside 1e-100 to 1e\\+100"),
+    ("input", 1e200, "the input's largest magnitude is .* give the current in A"),
+    ("t", 1e9, "t spans .* s .*: is it in ms, us or ns\\? give it in seconds"),
+    ("t", 1e-300, "t steps by .* s \\(median\\): is it in seconds\\?")])
+def test_magnitudes_no_record_can_have_are_refused_with_one_line(data, tmp_path, capsys, column, factor, message):
+    records = np.loadtxt(data[0], delimiter=",", skiprows=1)
+    records[:, ("t", "input", "output").index(column)] *= factor
+    scaled = tmp_path / "scaled.csv"
+    np.savetxt(scaled, records, delimiter=",", header="t,input,output", comments="", fmt="%.17g")
+    assert main(["fit", str(scaled), "--json", "--out", str(tmp_path / "out")]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and not (tmp_path / "out").exists()
+    (line,) = captured.err.strip().splitlines()
+    assert re.search(message, line), line

@@ -499,3 +499,17 @@ def test_an_atomic_write_that_fails_names_the_file_not_its_temporary(tmp_path):
         atomic_write_text(target, "x")
     assert failed.value.filename == str(target) and ".tmp" not in str(failed.value)
     assert [path.name for path in tmp_path.iterdir()] == ["model.yaml"], "no temporary file left"
+
+
+def test_a_huge_bad_cell_is_quoted_short_and_1_0_is_not_ten(tmp_path):
+    rows = ["t,input,output"] + [f"{k},{np.sin(k / 10):.6f},{np.tanh(k / 30):.6f}" for k in range(100)]
+    giant, underscored = list(rows), list(rows)
+    giant[8] = "7," + "x" * 1_000_000 + ",0.1"
+    underscored[8] = "7,1_0,0.1"
+    for name, lines, quoted in (("giant.csv", giant, "'xxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxxx... (1,000,000 characters)'"),
+                                ("underscored.csv", underscored, "'1_0'")):
+        path = tmp_path / name
+        path.write_text("\n".join(lines) + "\n")
+        with pytest.raises(InputError) as refused:
+            read_csv(path)
+        assert str(refused.value) == f"{path}: line 9, column 'input': {quoted} is not a number"

@@ -19,6 +19,7 @@ still exceed the limits of scale_problems.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -35,6 +36,8 @@ from sma_stage.model.forward import as_signal, forward, initial_states
 from sma_stage.model.parameters import DEFAULT_OPERATORS, PARAMETER_NAMES, GPIParameters, check_operators
 
 MIN_SAMPLES = 20
+INPUT_MAGNITUDES_A = (1e-6, 1e6)  # the largest |input| a record may have: a current in A
+OUTPUT_MAGNITUDES = (1e-100, 1e100)  # the largest |output|, any unit: the fit is scale-free within these
 OPERATOR_CANDIDATES = (5, 10, 15, 20)
 OPERATOR_MARGIN = 0.02  # operators=None: smallest count whose RMS error is within 2 % of the best
 DEFAULT_MAX_ITERATIONS = 200
@@ -176,8 +179,13 @@ def check_data(u: np.ndarray, y: np.ndarray, regressors: np.ndarray | None = Non
         raise InputError(f"input and output differ in length ({u.size} and {y.size} samples)")
     if u.size < MIN_SAMPLES:
         raise InputError(f"too few samples to identify the model: {u.size} (at least {MIN_SAMPLES})")
-    for name, values in (("input", u), ("output", y)):
-        if np.ptp(values) <= 1e-12 * max(1.0, float(np.max(np.abs(values)))):
+    for name, values, (low, high), hint in (
+            ("input", u, INPUT_MAGNITUDES_A, "give the current in A"),
+            ("output", y, OUTPUT_MAGNITUDES, "rescale the column (gpi_tool --unit names its unit)")):
+        largest = float(np.max(np.abs(values)))
+        if largest != 0.0 and not low <= largest <= high:
+            raise InputError(f"the {name}'s largest magnitude is {largest:.3g}, outside {low:g} to {high:g}: {hint}")
+        if np.ptp(values) <= 1e-12 * largest:
             raise InputError(f"no excitation: the {name} is constant")
     trend = y
     if regressors is not None and np.size(regressors):
@@ -512,11 +520,47 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     search; a count whose result still fails scale_problems is passed over (the message says so), and
     InputError is raised when every count fails.
     """
-    clock = time.perf_counter()
     matrix = _check_regressors(regressors, np.size(u))
     u, y = check_data(u, y, matrix)
     if initial is not None and not isinstance(initial, GPIParameters):
         raise InputError(f"initial must be GPIParameters, got {type(initial).__name__}")
+    scale = float(np.ptp(y))
+    if not math.isfinite(scale) or scale == 1.0:
+        return _fit_gpi(u, y, operators, initial, output_unit, matrix, starts, max_iterations, progress)
+    if isinstance(starts, Sequence):
+        starts = [output_scaled(start, 1.0 / scale) if isinstance(start, GPIParameters) else start
+                  for start in starts]
+    initial = None if initial is None else output_scaled(initial, 1.0 / scale)
+    found = _fit_gpi(u, y / scale, operators, initial, output_unit, matrix, starts, max_iterations, progress)
+    return _output_scaled_result(found, scale, y)
+
+
+def output_scaled(params: GPIParameters, factor: float) -> GPIParameters:
+    """The model whose output is `factor` times this one's: a1, a4, a5, a8 (the envelopes) and a9 (the
+    thresholds) times factor, a11 divided by it, a10 unchanged."""
+    return _scaled(params, factor).replace(a10=params.a10)
+
+
+OUTPUT_SCALE_POWERS = {"a1": 1, "a4": 1, "a5": 1, "a8": 1, "a9": 1, "a11": -1}  # how each parameter scales with y
+
+
+def _output_scaled_result(found: FitResult, scale: float, y: np.ndarray) -> FitResult:
+    """A fit made on y / scale, given back for y: parameters, errors and outputs in y's unit."""
+    predicted = found.predicted * scale
+    return dataclasses.replace(
+        found, parameters=output_scaled(found.parameters, scale),
+        standard_errors={name: error * scale ** OUTPUT_SCALE_POWERS.get(name, 0)
+                         for name, error in found.standard_errors.items()},
+        regressor_coefficients=found.regressor_coefficients * scale, predicted=predicted, residual=y - predicted,
+        identification=error_metrics(y, predicted), cost=found.cost * scale**2,
+        regressor_standard_errors=found.regressor_standard_errors * scale)
+
+
+def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIParameters | None, output_unit: str,
+             matrix: np.ndarray, starts: int | Sequence[GPIParameters] | None, max_iterations: int,
+             progress: Callable[[str], None] | None) -> FitResult:
+    """fit_gpi on checked data, y of any scale (fit_gpi gives it one of unit span)."""
+    clock = time.perf_counter()
     if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
         raise InputError(f"max_iterations must be a positive integer, got {max_iterations!r}")
     counts = OPERATOR_CANDIDATES if operators is None else (check_operators(operators),)

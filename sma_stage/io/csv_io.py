@@ -41,12 +41,25 @@ def _cells(line: str, delimiter: str | None) -> list[str]:
     return [cell.strip().strip('"').strip("'").strip() for cell in line.split(delimiter)]
 
 
+def _number(text: str) -> float:
+    """The cell as a float; ValueError for anything but a plain decimal number (Python's float() would
+    also take '1_0' as 10)."""
+    if "_" in text:
+        raise ValueError(text)
+    return float(text)
+
+
 def _is_number(text: str) -> bool:
     try:
-        float(text)
+        _number(text)
     except ValueError:
         return False
     return True
+
+
+def _shown(text: str, limit: int = 40) -> str:
+    """A cell as an error message quotes it: at most `limit` characters and its length."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
 
 
 def _role_names(columns: Mapping[str, str | None] | None) -> dict[str, str | None]:
@@ -66,7 +79,8 @@ def _column_index(header: list[str], name: str, path: Path) -> int:
     folded = [i for i, found in enumerate(header) if found.casefold() == name.casefold()]
     if len(folded) == 1:
         return folded[0]
-    raise InputError(f"{path}: no column '{name}' (columns found: {', '.join(header)})")
+    raise InputError(f"{path}: no column '{name}' (columns found: {', '.join(_shown(found) for found in header[:20])}"
+                     + (f" and {len(header) - 20} more)" if len(header) > 20 else ")"))
 
 
 def _parse_header(lines: list[tuple[int, str]], path: Path) -> tuple[list[str], str | None]:
@@ -79,7 +93,7 @@ def _parse_header(lines: list[tuple[int, str]], path: Path) -> tuple[list[str], 
         raise InputError(f"{path}: line {number} is data, expected a header naming the columns t,input,output")
     duplicates = sorted({name for name in header if header.count(name) > 1})
     if duplicates:
-        raise InputError(f"{path}: duplicate column name(s) in the header: {', '.join(duplicates)}")
+        raise InputError(f"{path}: duplicate column name(s) in the header: {', '.join(_shown(name) for name in duplicates)}")
     return header, delimiter
 
 
@@ -100,16 +114,16 @@ def _numeric_column(
 ) -> np.ndarray:
     texts = [row[index] for row in rows]
     try:
-        values = np.array([float(text) for text in texts], dtype=np.float64)
+        values = np.array([_number(text) for text in texts], dtype=np.float64)
     except ValueError:
         bad = next(k for k, text in enumerate(texts) if not _is_number(text))
         raise InputError(
-            f"{path}: line {line_numbers[bad]}, column '{name}': '{texts[bad]}' is not a number"
+            f"{path}: line {line_numbers[bad]}, column '{name}': '{_shown(texts[bad])}' is not a number"
         ) from None
     bad_values = np.flatnonzero(~np.isfinite(values))
     if bad_values.size:
         k = int(bad_values[0])
-        raise InputError(f"{path}: line {line_numbers[k]}, column '{name}': '{texts[k]}' is not finite")
+        raise InputError(f"{path}: line {line_numbers[k]}, column '{name}': '{_shown(texts[k])}' is not finite")
     return values
 
 

@@ -10,6 +10,8 @@ from sma_stage.errors import InputError
 
 DEFAULT_MIN_SAMPLES = 20
 _FLAT_RELATIVE_SPAN = 1e-9
+MAX_RECORD_S = 1e7  # about 116 days: a longer t column is not in seconds
+MIN_STEP_S = 1e-10  # a 10 GHz record: a smaller median step is not in seconds
 
 
 def _frozen_vector(values: object) -> np.ndarray:
@@ -95,15 +97,27 @@ def _check_increasing(t: np.ndarray, prefix: str) -> None:
     if bad.size:
         k = int(bad[0])
         raise InputError(
-            f"{prefix}time must increase: sample {k + 1} has t = {t[k + 1]!r} after t = {t[k]!r}"
+            f"{prefix}time must increase: sample {k + 1} has t = {float(t[k + 1])!r} after t = {float(t[k])!r}"
         )
+
+
+def _check_time_in_seconds(t: np.ndarray, prefix: str) -> None:
+    """Refuse a time column whose span or typical step cannot be seconds of a stage record (ns stamps give
+    a span of about 1e12: a lag of 1e10 s would be reported without a word)."""
+    span = float(t[-1] - t[0])
+    step = float(np.median(np.diff(t)))
+    if span > MAX_RECORD_S:
+        raise InputError(f"{prefix}t spans {span:.3g} s ({span / 86400:.3g} days): is it in ms, us or ns? "
+                         "give it in seconds")
+    if step < MIN_STEP_S:
+        raise InputError(f"{prefix}t steps by {step:.3g} s (median): is it in seconds?")
 
 
 def _check_excited(name: str, values: np.ndarray, prefix: str) -> None:
     span = float(np.ptp(values))
     if span <= _FLAT_RELATIVE_SPAN * float(np.max(np.abs(values))):
         raise InputError(
-            f"{prefix}no excitation: '{name}' is constant ({values[0]!r}) over all {len(values)} samples"
+            f"{prefix}no excitation: '{name}' is constant ({float(values[0])!r}) over all {len(values)} samples"
         )
 
 
@@ -124,6 +138,8 @@ def make_series(
     for name in ("t", "input", "output"):
         _check_finite(name, getattr(series, name), prefix)
     _check_increasing(series.t, prefix)
+    if not time_is_index:
+        _check_time_in_seconds(series.t, prefix)
     _check_excited("input", series.input, prefix)
     _check_excited("output", series.output, prefix)
     return series
