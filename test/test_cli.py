@@ -181,3 +181,49 @@ def test_magnitudes_no_record_can_have_are_refused_with_one_line(data, tmp_path,
     assert captured.out == "" and not (tmp_path / "out").exists()
     (line,) = captured.err.strip().splitlines()
     assert re.search(message, line), line
+
+
+def run_files(folder):
+    return {path.name: path.read_bytes() for path in folder.iterdir() if not path.name.startswith(".")}
+
+
+def test_out_that_is_a_file_is_refused_before_the_work(data, tmp_path, capsys, monkeypatch):
+    import sma_stage.commands.identify as identify_command
+
+    monkeypatch.setattr(identify_command, "identify_recording", lambda *args, **kwargs: pytest.fail("fitted"))
+    taken = tmp_path / "taken"
+    taken.write_text("mine")
+    assert main(["fit", str(data[0]), "--out", str(taken)]) == 2
+    assert capsys.readouterr().err.strip() == f"gpi_tool: error: --out {taken} is a file, not a folder"
+    assert taken.read_text() == "mine"
+
+
+@pytest.mark.parametrize("failure", [OSError(28, "No space left on device"), KeyboardInterrupt()])
+def test_a_run_that_fails_after_the_model_leaves_the_folder_as_it_was(data, tmp_path, capsys, monkeypatch, failure):
+    """model.yaml is written before the figures: a figure that cannot be written, or Ctrl-C there, once left
+    a new model beside the old report and figures."""
+    import sma_stage.commands.identify as identify_command
+
+    out = tmp_path / "out"
+    assert main(["fit", str(data[0]), "--operators", "5", "--out", str(out)]) == 0
+    before = run_files(out)
+
+    def fail(*args, **kwargs):
+        raise failure
+
+    monkeypatch.setattr(identify_command, "write_fit_figures", fail)
+    assert main(["fit", str(data[1]), "--operators", "5", "--out", str(out)]) in (2, 130)
+    assert run_files(out) == before
+    assert [path.name for path in tmp_path.iterdir()] == ["out"], "no staging folder left"
+
+
+def test_a_run_replaces_the_whole_set_of_an_earlier_run(data, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["diagnose", str(data[0]), "--validate", str(data[1]), "--operators", "5", "--rounds", "1",
+                 "--out", str(out)]) == 0
+    diagnosed = set(run_files(out))
+    (out / "notes.txt").write_text("the user's own file")
+    assert main(["fit", str(data[0]), "--operators", "5", "--out", str(out)]) == 0
+    fitted = set(run_files(out))
+    assert fitted == {"model.yaml", "report.json", "report.md", "fit.png", "notes.txt"}
+    assert diagnosed - fitted, "the diagnose run's own files are gone"

@@ -17,6 +17,7 @@ from sma_stage.identify.report import (
 )
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.load import load_series
+from sma_stage.io.run_folder import RunFolder
 from sma_stage.io.series import Series
 
 
@@ -47,38 +48,44 @@ def progress_line(text: str) -> None:
 
 def run_fit(args: argparse.Namespace) -> dict:
     """Fit the GPI; validate on --validate data when given; write model.yaml, report.json/.md, fit.png."""
-    data = read_data(args.data, args)
-    valid = read_data(args.validate, args) if args.validate else None
-    found = identify_recording(data, valid, args.holdout, operators=args.operators, output_unit=args.unit,
-                               progress=progress_line, source=str(args.data))
-    write_outputs(args, found, "GPI fit")
-    ident = data.split(1.0 - args.holdout)[0] if args.holdout else data
-    valid_predicted = predict(found.fit, found.validation.input) if found.validation else None
-    write_fit_figures(args.out / "fit.png", ident, found.fit, found.validation, valid_predicted)
+    with RunFolder(args.out) as run:
+        data = read_data(args.data, args)
+        valid = read_data(args.validate, args) if args.validate else None
+        found = identify_recording(data, valid, args.holdout, operators=args.operators, output_unit=args.unit,
+                                   progress=progress_line, source=str(args.data))
+        write_outputs(run.staging, found, "GPI fit")
+        ident = data.split(1.0 - args.holdout)[0] if args.holdout else data
+        valid_predicted = predict(found.fit, found.validation.input) if found.validation else None
+        write_fit_figures(run.staging / "fit.png", ident, found.fit, found.validation, valid_predicted)
+    print_summary(args, found, "GPI fit")
     return found.report
 
 
 def run_diagnose(args: argparse.Namespace) -> dict:
     """Fit, test the validation residual, add the effects the model lacks, report before and after; the
     model written is the GPI with those effects."""
-    data = read_data(args.data, args)
-    valid = read_data(args.validate, args) if args.validate else None
-    found = identify_recording(data, valid, args.holdout, operators=args.operators, diagnose_rounds=args.rounds,
-                               output_unit=args.unit, progress=progress_line, source=str(args.data))
-    if found.diagnosis is None:
-        raise InputError(found.warnings[0] if found.warnings else "the diagnosis did not run")
-    write_outputs(args, found, "GPI fit and residual diagnosis")
-    write_diagnosis_figures(args.out, found.validation, found.diagnosis, found.fit.parameters.output_unit)
+    with RunFolder(args.out) as run:
+        data = read_data(args.data, args)
+        valid = read_data(args.validate, args) if args.validate else None
+        found = identify_recording(data, valid, args.holdout, operators=args.operators,
+                                   diagnose_rounds=args.rounds, output_unit=args.unit, progress=progress_line,
+                                   source=str(args.data))
+        if found.diagnosis is None:
+            raise InputError(found.warnings[0] if found.warnings else "the diagnosis did not run")
+        write_outputs(run.staging, found, "GPI fit and residual diagnosis")
+        write_diagnosis_figures(run.staging, found.validation, found.diagnosis, found.fit.parameters.output_unit)
+    print_summary(args, found, "GPI fit and residual diagnosis")
     return found.report
 
 
-def write_outputs(args: argparse.Namespace, found: Identification, title: str) -> None:
-    """model.yaml (the identified model), report.json and report.md under --out; the summary also to
-    stderr unless --json."""
-    args.out.mkdir(parents=True, exist_ok=True)
-    found.model.save(args.out / "model.yaml")
-    write_json(args.out / "report.json", found.report)
-    summary = markdown_summary(found.report, title)
-    atomic_write_text(args.out / "report.md", summary)
+def write_outputs(folder: Path, found: Identification, title: str) -> None:
+    """model.yaml (the identified model), report.json and report.md into folder."""
+    found.model.save(folder / "model.yaml")
+    write_json(folder / "report.json", found.report)
+    atomic_write_text(folder / "report.md", markdown_summary(found.report, title))
+
+
+def print_summary(args: argparse.Namespace, found: Identification, title: str) -> None:
+    """The report's summary on standard output, unless --json (then the JSON alone goes there)."""
     if not args.json:
-        print(summary)
+        print(markdown_summary(found.report, title))
