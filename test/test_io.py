@@ -350,6 +350,12 @@ def test_wrong_message_type_empty_bag_and_missing_joint(tmp_path):
         load_series(unnamed)
     assert_input_error(excinfo, "no joint 'stage_x'", "joints found: arm, wrist")
 
+    empty = [(10**9 + k, joint_state(10**9 + k, [], names=("stage_x",))) for k in range(30)]
+    named = write_custom_bag(tmp_path / "empty_positions", {"/current_cmd": samples, "/joint_states": empty})
+    with pytest.raises(InputError) as excinfo:
+        load_series(named)
+    assert_input_error(excinfo, "joint 'stage_x' is named but has no position in any of the 30 messages")
+
 
 def test_float64_output_topic_is_accepted(tmp_path):
     samples = [(10**9 + 10 * k, float64(np.sin(k))) for k in range(30)]

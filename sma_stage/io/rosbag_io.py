@@ -130,7 +130,7 @@ def _read_outputs(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(receive times, header stamps or 0, positions) of the output messages that carry the joint."""
     store = _typestore()
-    receive, stamps, values, names_seen = [], [], [], set()
+    receive, stamps, values, names_seen, without_position = [], [], [], set(), 0
     for connection, receive_ns, raw in reader.messages(connections=connections):
         message = store.deserialize_cdr(raw, connection.msgtype)
         if connection.msgtype == FLOAT64:
@@ -138,11 +138,15 @@ def _read_outputs(
         else:
             position, stamp = _joint_position(message, joint_name), _stamp_ns(message)
             names_seen.update(message.name)
+            without_position += joint_name in message.name and position is None
         if position is not None:
             receive.append(receive_ns)
             stamps.append(stamp)
             values.append(position)
     if names_seen and not values:
+        if without_position:
+            raise InputError(f"{source}: joint '{joint_name}' is named but has no position in any of the "
+                             f"{without_position} messages (their position arrays are shorter than their names)")
         raise InputError(f"{source}: no joint '{joint_name}' in the output (joints found: {', '.join(sorted(names_seen))})")
     return np.array(receive, dtype=np.int64), np.array(stamps, dtype=np.int64), np.array(values, dtype=np.float64)
 
