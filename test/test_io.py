@@ -3,6 +3,8 @@
 import os
 import shutil
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +20,7 @@ from sma_stage.io import (
     write_bag,
     write_csv,
 )
-from sma_stage.io.rosbag_io import FLOAT64, JOINT_STATE, _typestore
+from sma_stage.io.rosbag_io import FLOAT64, JOINT_STATE, _typestore, unfinished_bags
 
 STORAGES = ("sqlite3", "mcap")
 
@@ -519,3 +521,20 @@ def test_a_huge_bad_cell_is_quoted_short_and_1_0_is_not_ten(tmp_path):
         with pytest.raises(InputError) as refused:
             read_csv(path)
         assert str(refused.value) == f"{path}: line 9, column 'input': {quoted} is not a number"
+
+
+def test_a_recording_killed_before_it_finished_is_found_beside_its_bag(tmp_path):
+    """A node killed while recording leaves its hidden staging folder: unfinished_bags lists it (the
+    identification node reports it when it records to the same path again)."""
+    script = (f"import os, time; from sma_stage.io import BagRecorder; "
+              f"r = BagRecorder({str(tmp_path / 'session')!r}); print('open', flush=True); time.sleep(60)")
+    child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "open"
+    finally:
+        child.kill()
+        child.wait(10)
+    (left,) = unfinished_bags(tmp_path / "session")
+    assert left.name.startswith(".session.") and left.name.endswith(".partial")
+    assert not (tmp_path / "session").exists()
+    assert unfinished_bags(tmp_path / "other") == []

@@ -877,6 +877,15 @@ def test_identification_record_bag_can_be_switched_while_running(ros, tmp_path):
         np.testing.assert_array_equal(getattr(from_bag, column), getattr(recorded, column))
 
 
+def test_identification_reports_an_unfinished_bag_left_by_a_killed_node(ros, tmp_path, capfd):
+    leftover = tmp_path / ".live.k1ll3d.partial"
+    leftover.mkdir()
+    identification_node(ros, record_bag=str(tmp_path / "live"))
+    logged = capfd.readouterr().err
+    assert f"1 unfinished bag(s) of {tmp_path / 'live'} from a recording that was killed" in logged, logged
+    assert str(leftover) in logged and leftover.is_dir(), "reported and kept"
+
+
 def test_compensator_control_period_counts_simulated_seconds_with_sim_time(ros):
     """With use_sim_time the loop ticks every 1/rate_hz of /clock time: twenty 0.1 s clock steps in 0.2 s of
     wall time give about twenty commands, and none come while the clock stands still for 1 s."""

@@ -238,6 +238,14 @@ def _storage_plugin(storage: str) -> Any:
     return plugins[str(storage).lower()]
 
 
+def unfinished_bags(path: str | os.PathLike) -> list[Path]:
+    """Staging folders of bags for path that were never finished (their recorder was killed), oldest first:
+    `.<name>.<random>.partial` beside it, each holding the storage file written up to the kill."""
+    path = Path(path)
+    found = [folder for folder in path.parent.glob(f".{path.name}.*.partial") if folder.is_dir()]
+    return sorted(found, key=lambda folder: folder.stat().st_mtime)
+
+
 def _refuse_existing(target: Path, overwrite: bool, note: str = "") -> None:
     if (target.exists() or target.is_symlink()) and not overwrite:
         raise InputError(f"{target} exists already; pass overwrite=True to replace it{note}")

@@ -43,7 +43,7 @@ from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import strict_json
-from sma_stage.io.rosbag_io import joint_index, output_times
+from sma_stage.io.rosbag_io import joint_index, output_times, unfinished_bags
 from sma_stage.io.series import Series
 from sma_stage.model import IdentifiedModel
 from sma_stage.model.parameters import MAX_OPERATORS
@@ -245,8 +245,16 @@ class IdentificationNode(Node):
         self.recorder = self.new_recorder(path, storage, overwrite)
 
     def new_recorder(self, path: str, storage: str, overwrite: bool) -> BagThread | None:
-        """A recorder into a new rosbag2 directory (None for an empty path); InputError when it cannot be."""
-        return BagThread(Path(path), storage, overwrite, str(self.values["input_topic"])) if path else None
+        """A recorder into a new rosbag2 directory (None for an empty path); InputError when it cannot be.
+        Unfinished bags of the same path (a node killed while recording) are reported, and kept."""
+        if not path:
+            return None
+        leftovers = unfinished_bags(path)
+        if leftovers:
+            self.get_logger().warning(
+                f"{len(leftovers)} unfinished bag(s) of {path} from a recording that was killed, kept as they are "
+                f"(the storage file up to the kill, no metadata.yaml): {', '.join(map(str, leftovers))}")
+        return BagThread(Path(path), storage, overwrite, str(self.values["input_topic"]))
 
     def close_bag(self) -> None:
         """Finish the bag being recorded (renamed into place)."""
