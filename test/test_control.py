@@ -124,6 +124,7 @@ def test_pi_removes_a_constant_offset_of_the_plant():
     (lambda core: Compensator(MODEL, LIMIT_A, feedforward_lead_limit=float("nan")), "feedforward_lead_limit"),
     (lambda core: setattr(core, "deadband_m", -1e-6), "deadband_m"),
     (lambda core: Compensator("not a model"), "IdentifiedModel"),
+    (lambda core: Compensator(MODEL, LIMIT_A, ""), "inverse method"),  # fuzzing: was an AttributeError
     (lambda core: core.set_model(IdentifiedModel(MODEL.parameters.replace(output_unit="mm"), MODEL.operators)),
      "output unit"),
     (lambda core: Effect("thermal_lag", {"tau_s": -2.0}), "tau_s"),
@@ -255,3 +256,10 @@ def test_following_the_applied_current_keeps_the_model_where_the_stage_is():
     assert following.lag_state_a == pytest.approx(state, abs=1e-12)
     assert np.allclose(following.inverse.states, forward.states, rtol=0.0, atol=1e-15)
     assert following.integral_m == 0.0 and following.command_a == u[-1]
+
+
+def test_a_step_too_short_to_move_the_lag_gives_the_limited_lead_not_a_division_by_zero():
+    """Fuzzing found it: a dt of 8.9e-213 s made the exact lead divide by 1 - exp(-dt / tau) = 0."""
+    core = Compensator(lagged(10.0), LIMIT_A, max_rate_a_per_s=0.0)
+    target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
+    assert core.command(1e-4, None, 8.857633019452313e-213) == pytest.approx(min(3.0 * target, LIMIT_A))

@@ -963,3 +963,48 @@ def test_identification_excites_and_refits_on_sim_time(ros):
     assert report["samples"]["identification"] + report["samples"]["validation"] >= 60
     t = identification.snapshot().t
     assert 250.0 <= t[-1] - t[0] <= 330.0, "the recording spans the signal's simulated duration"
+
+
+def test_compensator_callbacks_survive_any_message_and_refused_parameters_change_nothing(ros):
+    """Fuzzing the callbacks directly (no DDS in between): any setpoint, joint_states or current_applied value,
+    names and position arrays of any length, and parameter changes of any type and value."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    compensator = compensator_node(ros, feedback=True, tuning="manual", kp=2.0, ki=1.0)
+    model_before = compensator.model
+    floats = st.floats(width=64)
+    messages = st.one_of(
+        floats.map(lambda x: ("setpoint", Float64(data=x))),
+        floats.map(lambda x: ("current_applied", Float64(data=x))),
+        st.tuples(st.lists(st.sampled_from(["stage_x", "other", ""]), max_size=3), st.lists(floats, max_size=3)).map(
+            lambda names_positions: ("joint_states", JointState(name=names_positions[0], position=names_positions[1]))))
+    parameters = st.tuples(st.sampled_from(["kp", "ki", "max_current", "lead_limit", "deadband", "tuning", "model",
+                                            "inverse_method", "max_current_rate", "rate_hz"]),
+                           st.one_of(floats, st.integers(-10**6, 10**6), st.text(max_size=5), st.booleans()))
+
+    tried = []
+
+    @settings(max_examples=300, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(steps=st.lists(st.one_of(messages, parameters.map(lambda change: ("parameter", change))), max_size=12))
+    def run(steps):
+        tried.append(len(steps))
+        for kind, payload in steps:
+            if kind == "parameter":
+                name, value = payload
+                before = compensator.get_parameter(name).value
+                result = compensator.set_parameters([Parameter(name, value=value)])[0]
+                if not result.successful:
+                    assert compensator.get_parameter(name).value == before and result.reason
+                    assert compensator.model == model_before
+                else:
+                    compensator.set_parameters([Parameter(name, value=before)])
+            else:
+                getattr(compensator, f"on_{kind}")(payload)
+                compensator.on_tick()
+            assert math.isfinite(compensator.command_a)
+            assert abs(compensator.command_a) <= float(compensator.get_parameter("max_current").value) + 1e-12
+
+    run()
+    assert len(tried) >= 200 and sum(tried) >= 1000, (len(tried), sum(tried))
+    print(f"compensator callbacks: {len(tried)} sequences, {sum(tried)} messages and parameter changes")

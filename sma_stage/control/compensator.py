@@ -184,7 +184,7 @@ class Compensator:
         reference = lag.parameters.get("joule_reference_a", 0.0) if lag is not None else 0.0
         reach = (float(joule_heating(-limit, reference)), float(joule_heating(limit, reference)))
         state = model.state
-        inverse = GPIInverseStream(model.parameters, model.operators, method or self._inverse.method,
+        inverse = GPIInverseStream(model.parameters, model.operators, self._inverse.method if method is None else method,
                                    initial=None if state is None else np.array(state.operators), input_range=reach)
         self._model, self._inverse, self._limit = model, inverse, limit
         self._lag, self._reference = lag, reference

@@ -42,10 +42,12 @@ def lag_step(state: float, start_drive: float, end_drive: float, step_s: float, 
 def lag_drive_for(state: float, target: float, step_s: float, tau_s: float) -> float:
     """The drive [A] that, held for step_s [s] from `state`, brings the lag's state to `target` (lag_step
     with equal ends, solved for the drive)."""
-    if tau_s <= 0.0 or step_s <= 0.0:
+    if tau_s <= 0.0 or step_s <= 0.0 or target == state:
         return target
-    kept = math.exp(-step_s / tau_s)
-    return (target - kept * state) / (1.0 - kept)
+    closed = -math.expm1(-step_s / tau_s)  # the fraction of the gap a held drive closes over step_s
+    if closed == 0.0:  # a step too short to move the state at all: no finite drive does it
+        return state + math.copysign(math.inf, target - state)
+    return state + (target - state) / closed
 
 
 @numba.njit(cache=True, nogil=True)
