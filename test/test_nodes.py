@@ -365,10 +365,11 @@ SETPOINTS_M = [0.0, 1e-4, 2.5e-4, 1.5e-4, -1e-4, -3e-4, 5e-5, 3e-4]
 
 def compensator_node(ros: Ros, **overrides) -> CompensatorNode:
     """The compensator on the shipped model's GPI without its lag, feedforward and without the rate limit
-    (so that its commands are the plain inverse's), unless a test says otherwise."""
+    (so that its commands are the plain inverse's), a measurement never stale (tests publish one and wait),
+    unless a test says otherwise."""
     if "model" not in overrides and "model_file" not in overrides:
         overrides["model"] = IdentifiedModel(DEFAULT_PARAMS, OPERATORS).to_yaml_text()
-    overrides = {"feedback": False, "max_current_rate": 0.0, **overrides}
+    overrides = {"feedback": False, "max_current_rate": 0.0, "measurement_timeout": 3600.0, **overrides}
     params = [Parameter(name, value=value) for name, value in overrides.items()]
     return ros.add(CompensatorNode(context=ros.context, parameter_overrides=params))
 
@@ -531,6 +532,25 @@ def test_compensator_pi_integrates_the_error_with_anti_windup(ros):
     assert compensator.inverse.last_clipped == 1
     probe.measure(1.2e-4)
     wait_until(lambda: abs(probe.latest() - 2.0) > 1e-9, 1.0, "the command to leave saturation at once")
+
+
+def test_compensator_holds_its_command_and_says_so_when_the_stage_stops_publishing(ros, capfd):
+    """Feedback on a position that no longer comes would wind the integral up on a stale error; the node holds
+    the last command instead while joint_states is older than measurement_timeout, and goes on when it returns."""
+    compensator = compensator_node(ros, feedback=True, tuning="manual", kp=0.0, ki=5.0, rate_hz=50.0,
+                                   measurement_timeout=0.3)
+    probe = CompensatorProbe(ros, compensator)
+    probe.measure(0.0)
+    wait_until(lambda: compensator.measured_m == 0.0, 5.0, "the measured position")
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: compensator.measurement_age_s() > 0.35, 5.0, "the measurement to go stale")
+    held, integral, count = probe.latest(), compensator.integral_m, len(probe.commands.messages)
+    wait_until(lambda: len(probe.commands.messages) > count + 10, 5.0, "ten more commands")
+    assert all(message.data == held for message in probe.commands.messages[count:]), "held"
+    assert compensator.integral_m == integral, "no integration on a stale error"
+    assert "no joint_states for" in capfd.readouterr().err
+    probe.measure(0.0)
+    wait_until(lambda: compensator.integral_m != integral, 5.0, "the loop to act again")
 
 
 @pytest.mark.parametrize("method", ["exact", "analytic"])

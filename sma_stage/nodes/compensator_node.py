@@ -31,6 +31,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
@@ -88,6 +89,8 @@ COMPENSATOR_PARAMS = [
           "sigmas)", 0.0, 1e-2),
     Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of node-clock time]; "
           "0: no limit", 0.0, 1e6),
+    Param("measurement_timeout", 1.0, "feedback: hold current_cmd while the latest joint_states is older than this "
+          "[s, steady clock] (the stage stopped publishing)", 0.001, 3600.0),
     Param("rate_hz", 50.0, "command republication and PI loop rate [Hz; of simulated time with use_sim_time]", 0.1, 2000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
@@ -127,6 +130,7 @@ class CompensatorNode(Node):
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.setpoint_m: float | None = None
         self.measured_m: float | None = None
+        self._measured_at: Time | None = None
         self.clipped_count = 0
         self._last_step_ns: int | None = None
         self._last_applied_ns: int | None = None
@@ -266,6 +270,7 @@ class CompensatorNode(Node):
         index = joint_index(message, str(self.values["joint_name"]))
         if index is not None and math.isfinite(message.position[index]):
             self.measured_m = float(message.position[index])
+            self._measured_at = self.steady.now()
 
     def control_clock(self) -> Clock:
         """The clock the control period runs on: the node clock with use_sim_time (1/rate_hz simulated s,
@@ -309,10 +314,21 @@ class CompensatorNode(Node):
             return 0.0
         return max((now_ns - previous_ns) * 1e-9, 0.0)
 
+    def measurement_age_s(self) -> float:
+        """Steady-clock seconds since the latest usable joint_states (inf before the first)."""
+        if self._measured_at is None:
+            return math.inf
+        return (self.steady.now() - self._measured_at).nanoseconds * 1e-9
+
     def compute_command(self, dt_s: float) -> float:
         """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral), held for one control
         period (the lead's step)."""
         measured = self.measured_m if self.values["feedback"] else None
+        age_s = self.measurement_age_s()
+        if measured is not None and age_s > float(self.values["measurement_timeout"]):
+            self.warnings.warn("stale", f"no joint_states for {age_s:.3g} s (measurement_timeout "
+                               f"{self.values['measurement_timeout']:g} s): current_cmd held at {self.command_a:g} A")
+            return self.command_a
         try:
             current = self.core.command(self.setpoint_m, measured, dt_s, hold_s=self.period_estimate_s)
         except InputError as error:  # a core that cannot command (e.g. manual gains too large) keeps the last one
