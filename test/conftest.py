@@ -28,3 +28,16 @@ def _isolate_ros() -> None:
 
 
 _isolate_ros()
+
+
+def _hypothesis_profiles() -> None:
+    """Property tests draw the same cases every run (derandomize), so that CI passes or fails on the code,
+    not on the draw; HYPOTHESIS_PROFILE=explore draws new ones, many more, to look for more failures."""
+    from hypothesis import settings
+
+    settings.register_profile("default", derandomize=True)
+    settings.register_profile("explore", derandomize=False, max_examples=2000)
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
+
+
+_hypothesis_profiles()

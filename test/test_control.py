@@ -263,3 +263,10 @@ def test_a_step_too_short_to_move_the_lag_gives_the_limited_lead_not_a_division_
     core = Compensator(lagged(10.0), LIMIT_A, max_rate_a_per_s=0.0)
     target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
     assert core.command(1e-4, None, 8.857633019452313e-213) == pytest.approx(min(3.0 * target, LIMIT_A))
+
+
+def test_a_huge_control_step_bounds_the_integral_instead_of_overflowing():
+    """Fuzzing found it: ki 83 /s over dt 1.77e308 s overflowed the integral and the core refused finite input."""
+    core = Compensator(MODEL, LIMIT_A, ki=83.0, max_rate_a_per_s=0.0)
+    current = core.command(0.0, 1.0, 1.7724361384671202e308)
+    assert current == -LIMIT_A and math.isfinite(core.integral_m)

@@ -3,6 +3,7 @@ callbacks: whatever comes in, the answer is a result or InputError (one line), n
 nothing in force changes on a refusal. The number of cases each tries is its max_examples (hypothesis)."""
 
 import math
+import os
 
 import numpy as np
 from hypothesis import HealthCheck, given, settings
@@ -16,7 +17,9 @@ from sma_stage.model import GPIInverseStream, IdentifiedModel, forward, load_mod
 
 SHIPPED = load_model_file("config/model_default.yaml")
 SHIPPED_TEXT = SHIPPED.to_yaml_text()
-FAST = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+EXPLORE = os.environ.get("HYPOTHESIS_PROFILE") == "explore"  # conftest.py: new cases each run, more of them
+FAST = settings(max_examples=2000 if EXPLORE else 200, deadline=None,
+                suppress_health_check=[HealthCheck.function_scoped_fixture])
 ANY_FLOAT = st.floats(allow_nan=True, allow_infinity=True, width=64)
 FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64)
 
@@ -107,7 +110,7 @@ words = st.sampled_from(["fit", "diagnose", "simulate", "paper", "--operators", 
                          "--out", "/proc/forbidden", "missing.csv", "--effect", "bogus=1", "--set", "a=b"])
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(FAST, max_examples=1000 if EXPLORE else 150)
 @given(argv=st.lists(words, min_size=0, max_size=7))
 def test_the_command_line_ends_with_0_or_2_and_one_error_line(argv, capsys):
     try:

@@ -283,7 +283,9 @@ class Compensator:
     def _pi_target(self, setpoint: float, measured: float, dt: float) -> float:
         error = setpoint - measured
         if self.saturated * error <= 0.0:
-            self.integral_m += self._ki * error * dt
+            low, high = self._inverse.target_bounds  # beyond them the integral changes no command: a bound
+            reach = high - low
+            self.integral_m = min(reach, max(-reach, self.integral_m + self._ki * error * dt))
         target = setpoint + self._kp * error + self.integral_m
         if not math.isfinite(target):
             raise InputError(f"the loop's target is not finite (setpoint {setpoint!r}, measured {measured!r})")
