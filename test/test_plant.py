@@ -348,3 +348,16 @@ def test_config_and_effects_from_mappings():
         StageConfig.from_mapping({"max_curent_a": 3.0})
     with pytest.raises(InputError):
         Effects.from_mapping({"sensor_delay_s": "soon"})
+
+
+def test_a_simulation_run_in_parts_with_progress_is_the_same_run(monkeypatch):
+    import sma_stage.plant.simulator as simulator
+
+    currents = 4.0 * np.sin(np.linspace(0.0, 12.0, 50))
+    whole = simulator.simulate(currents, 0.2, seed=3)
+    monkeypatch.setattr(simulator, "PROGRESS_SAMPLES", 7)
+    seen = []
+    parts = simulator.simulate(currents, 0.2, seed=3, progress=lambda done, total: seen.append((done, total)))
+    assert seen == [(min(k, 50), 50) for k in range(7, 57, 7)]
+    for name in ("t_s", "position_m", "measured_position_m", "wire_temperatures_k", "martensite_fractions"):
+        np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 import numpy as np
 
@@ -11,6 +12,7 @@ from sma_stage.errors import InputError
 from sma_stage.io.csv_io import write_csv
 from sma_stage.io.series import make_series
 from sma_stage.plant import Effects, StageConfig, simulate
+from sma_stage.plant.simulator import PROGRESS_SAMPLES
 from sma_stage.signals import IDENTIFICATION_DURATION_S, paper_identification_signal, paper_validation_signal
 
 SIGNALS = {"identification": paper_identification_signal, "validation": paper_validation_signal}
@@ -52,12 +54,18 @@ def input_signal(args: argparse.Namespace) -> tuple[np.ndarray, float]:
     return np.asarray(recorded.input), float(periods.mean())
 
 
+def report_progress(done: int, total: int) -> None:
+    """Progress of a long simulation on standard error (--json output stays clean)."""
+    if total > PROGRESS_SAMPLES:
+        print(f"gpi_tool: simulated {done:,} of {total:,} samples", file=sys.stderr, flush=True)
+
+
 def run_simulate(args: argparse.Namespace) -> dict:
     """Simulate and write t, input, output (the measured position [m]) as CSV."""
     current, dt = input_signal(args)
     config = StageConfig.from_mapping(parse_settings(args.set, "set"))
     effects = Effects.from_mapping(parse_settings(args.effect, "effect"))
-    result = simulate(current, dt, config=config, effects=effects, seed=args.seed)
+    result = simulate(current, dt, config=config, effects=effects, seed=args.seed, progress=report_progress)
     series = make_series(result.t_s, result.current_a, result.measured_position_m,
                          source=f"simulator: {args.input}")
     write_csv(args.out, series)

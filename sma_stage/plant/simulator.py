@@ -2,6 +2,7 @@
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,6 +12,7 @@ from sma_stage.plant import physics as ph
 from sma_stage.plant.config import Effects, StageConfig, pack_parameters
 
 _TIME_TOLERANCE_S = 1e-9
+PROGRESS_SAMPLES = 200_000  # simulate() runs in parts of this many samples, reporting progress after each
 
 
 @dataclass(frozen=True)
@@ -154,8 +156,10 @@ def simulate(
     config: StageConfig | None = None,
     effects: Effects | None = None,
     seed: int = 0,
+    progress: Callable[[int, int], None] | None = None,
 ) -> SimulationResult:
-    """Run the stage from rest on a current sequence [A] sampled every dt_s [s] (zero-order hold).
+    """Run the stage from rest on a current sequence [A] sampled every dt_s [s] (zero-order hold); progress,
+    when given, is called with (samples done, samples in all) every PROGRESS_SAMPLES samples.
 
     Gives the same trajectory as calling StageSimulator(config, effects, seed).step(i, dt_s) per sample.
     """
@@ -163,7 +167,12 @@ def simulate(
     currents = _check_currents(current_a)
     sim = StageSimulator(config, effects, seed)
     position, temperatures, fractions, times = _allocate(currents.size)
-    ph.run(sim._parameters, sim._state, currents, dt, position, temperatures, fractions, times)
+    for start in range(0, currents.size, PROGRESS_SAMPLES):
+        part = slice(start, start + PROGRESS_SAMPLES)
+        ph.run(sim._parameters, sim._state, currents[part], dt, position[part], temperatures[part], fractions[part],
+               times[part])
+        if progress is not None:
+            progress(min(start + PROGRESS_SAMPLES, currents.size), currents.size)
     previous = np.concatenate(([sim._initial_position], position[:-1]))
     velocity = (position - previous) / dt
     target = times - sim.effects.sensor_delay_s + _TIME_TOLERANCE_S
