@@ -117,24 +117,28 @@ class NodeProcesses:
         self._lock = threading.Lock()
 
     def start(self, executable: str, parameters: Mapping[str, Any] | None = None,
-              params_files: Iterable[Path] = ()) -> NodeProcess:
-        """Start an executable with its parameter files, then `parameters` (which win), in this domain.
+              params_files: Iterable[Path] = (), namespace: str = "") -> NodeProcess:
+        """Start an executable with its parameter files, then `parameters` (which win), in this domain, in
+        `namespace` when given (e.g. /stage_3: its topics and services under it).
 
         Call it from the thread that outlives the child (Linux ties the child's life to that thread).
         """
         self.log_dir.mkdir(parents=True, exist_ok=True)
         command = [str(find_executable(executable)), "--ros-args"]
+        if namespace:
+            command += ["-r", f"__ns:={namespace}"]
         for path in params_files:
             command += ["--params-file", str(path)]
+        stem = f"{namespace.strip('/').replace('/', '_')}_{executable}" if namespace else executable
         if parameters:
-            overrides = self.log_dir / f"{executable}.params.yaml"
+            overrides = self.log_dir / f"{stem}.params.yaml"
             overrides.write_text(yaml.safe_dump({"/**": {"ros__parameters": dict(parameters)}}, sort_keys=False))
             command += ["--params-file", str(overrides)]
-        log_path = self.log_dir / f"{executable}.log"
+        log_path = self.log_dir / f"{stem}.log"
         with open(log_path, "wb") as log:
             popen = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
                                      env=ros_environment(self.domain_id), preexec_fn=_die_with_parent())
-        process = NodeProcess(executable, popen, log_path)
+        process = NodeProcess(f"{namespace.rstrip('/')}/{executable}" if namespace else executable, popen, log_path)
         with self._lock:
             self.processes.append(process)
         return process
