@@ -3,6 +3,7 @@ parameters, and a setpoint then drives the simulated stage through the compensat
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -179,3 +180,43 @@ def _alive(pid: int) -> bool:
     except FileNotFoundError:
         return False
 
+
+
+def test_a_refit_killed_midway_leaves_the_old_model_file_or_the_new_one_whole(tmp_path):
+    """SIGKILL the identification node at several moments of a refit: the model file is the old one or a
+    whole new one (written by one atomic rename), never half of either."""
+    from std_srvs.srv import Trigger
+
+    model_file = tmp_path / "model.yaml"
+    shutil.copy(CONFIG_DIR / "model_default.yaml", model_file)
+    old = model_file.read_bytes()
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    found = []
+    for attempt, kill_after_s in enumerate((0.05, 2.0, None)):
+        with NodeProcesses(tmp_path / f"nodes_{attempt}", domain) as nodes:
+            nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0,
+                                       "use_sim_time": True}, [CONFIG_DIR / "stage.yaml"])
+            identification = nodes.start("identification_node", {
+                "excite_duration": 300.0, "excite_rate_hz": 1.0, "operators": 5, "min_samples": 60,
+                "model_file": str(model_file), "use_sim_time": True, "push_timeout": 0.1},
+                [CONFIG_DIR / "identification.yaml"])
+            with RosClient(domain, f"kill_test_{attempt}") as client:
+                client.wait_for_services(["identification/refit"], 60.0, nodes.check_running)
+                deadline = time.monotonic() + 30.0
+                while not client.trigger("identification/excite")[0]:
+                    assert time.monotonic() < deadline, "~/excite refused for 30 s"
+                    time.sleep(0.1)
+                time.sleep(300.0 / TIME_SCALE + 1.0)
+                refit = client.node.create_client(Trigger, "identification/refit").call_async(Trigger.Request())
+                if kill_after_s is None:
+                    wait_for(refit.done, 60.0, "the refit", nodes.check_running)
+                else:
+                    time.sleep(kill_after_s)
+                    identification.popen.send_signal(signal.SIGKILL)
+                    identification.popen.wait(10)
+        written = model_file.read_bytes()
+        found.append("old" if written == old else "new")
+        if written != old:
+            assert load_model_file(model_file).operators == 5, "a new model file is a whole model"
+    assert found[-1] == "new", found
+    print(f"model file after a SIGKILL 0.05 and 2.0 s into a refit, and after a whole refit: {found}")
