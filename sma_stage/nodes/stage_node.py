@@ -107,6 +107,7 @@ class StageNode(Node):
         self.last_command: Time | None = None
         self.stopped = False
         self.watchdog_tripped = False
+        self.published_steps = 0  # steps published: one joint_states and one current_applied each
         self.clamped_count = 0
         self.rejected_count = 0
         self.warnings = ThrottledWarnings(self)
@@ -198,6 +199,7 @@ class StageNode(Node):
         message.velocity = [self.state.velocity_m_s]
         self.applied_pub.publish(Float64(data=float(self.applied_a)))
         self.joint_pub.publish(message)
+        self.published_steps += 1
 
     def stamp(self):
         """The time of the current state: simulated time with use_sim_time, else the node clock."""
@@ -224,6 +226,10 @@ class StageNode(Node):
         self.get_logger().info(response.message)
         return response
 
+    def close(self) -> None:
+        """Say how many steps were published (a soak counts them against a bag), before the node goes."""
+        self.get_logger().info(f"published {self.published_steps} steps (joint_states and current_applied)")
+
     def diagnostic_status(self) -> DiagnosticStatus:
         """The stage's health as one DiagnosticStatus (wires, command age, clamping, stop flag)."""
         state = self.state
@@ -245,6 +251,7 @@ class StageNode(Node):
             "rejected_commands": self.rejected_count,
             "stopped": self.stopped,
             "watchdog_tripped": self.watchdog_tripped,
+            "published_steps": self.published_steps,
         }
         return DiagnosticStatus(level=level, name=f"{self.get_name()}: sim stage", message=text,
                                 hardware_id="sma_stage_sim",
