@@ -105,14 +105,13 @@ def run(minutes: float, rate_hz: float) -> int:
     for topic in ("/joint_states", "/current_applied"):
         count = recorded.get(topic, 0)
         print(f"| {topic} | {published} | {count} | {published - count} |")
-    print("\n| node | resident set after the warm-up [MiB] | at the end [MiB] | growth % | growth per hour [MiB] |")
-    print("|---|---|---|---|---|")
+    print("\n| node | resident set after the warm-up [MiB] | at a third | at two thirds | at the end | growth over the "
+          "last third [MiB] |")
+    print("|---|---|---|---|---|---|")
     for name, samples in memory.items():
-        kept = [(t, kib) for t, kib in samples if t >= WARMUP_S and kib > 0]
-        (t0, first), (t1, last) = kept[0], kept[-1]
-        per_hour = (last - first) / 1024 / max(t1 - t0, 1e-9) * 3600
-        print(f"| {name} | {first / 1024:.1f} | {last / 1024:.1f} | {100 * (last - first) / first:+.1f} | "
-              f"{per_hour:+.1f} |")
+        kept = [kib / 1024 for t, kib in samples if t >= WARMUP_S and kib > 0]
+        marks = [kept[0], kept[len(kept) // 3], kept[2 * len(kept) // 3], kept[-1]]
+        print(f"| {name} | " + " | ".join(f"{mib:.1f}" for mib in marks) + f" | {marks[3] - marks[2]:+.1f} |")
     print(f"\nThe bag's joint_states against an independent reliable subscriber (this process), over the "
           f"{(window[1] - window[0]) * 1e-9:.1f} s both saw: {len(inside)} messages, {missing_from_bag} missing from the "
           f"bag, {missing_from_probe} missing from the subscriber. The stage published {published - recorded.get('/joint_states', 0)} "
