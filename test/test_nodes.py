@@ -137,6 +137,17 @@ def command_publisher(probe: Node):
     return lambda value: publisher.publish(Float64(data=float(value)))
 
 
+def stage_at_one_ampere(ros: Ros, **overrides) -> tuple[StageNode, Node, object]:
+    """A stage applying 1 A commanded by a probe: (stage, probe, send(value))."""
+    stage = stage_node(ros, **overrides)
+    probe = ros.probe()
+    send = command_publisher(probe)
+    wait_until(lambda: stage.count_publishers("current_cmd") >= 1, 5.0, "the command publisher")
+    send(1.0)
+    wait_until(lambda: stage.applied_a == 1.0, 5.0, "the commanded current")
+    return stage, probe, send
+
+
 def diagnostic_values(array: DiagnosticArray) -> dict[str, str]:
     return {pair.key: pair.value for status in array.status for pair in status.values}
 
@@ -210,12 +221,7 @@ def test_stage_publishes_the_current_it_applied_clamped_and_zeroed_by_the_watchd
 
 
 def test_stage_stop_latches_until_resume(ros):
-    stage = stage_node(ros, rate_hz=100.0, command_timeout=5.0)
-    probe = ros.probe()
-    send = command_publisher(probe)
-    wait_until(lambda: stage.count_publishers("current_cmd") >= 1, 5.0, "the command publisher")
-    send(1.0)
-    wait_until(lambda: stage.applied_a == 1.0, 5.0, "the commanded current")
+    stage, probe, send = stage_at_one_ampere(ros, rate_hz=100.0, command_timeout=5.0)
     answer = ros.call(probe, Trigger, "stage/stop")
     assert answer.success
     send(2.0)
@@ -232,12 +238,7 @@ def test_stage_stop_latches_until_resume(ros):
 def test_stage_watchdog_keeps_quiet_while_stopped(ros):
     """After ~/stop the commands that keep coming are ignored; the watchdog must not then report them missing
     (it once warned 'no current command' about 1 s after ~/stop while a compensator published at 50 Hz)."""
-    stage = stage_node(ros, rate_hz=100.0, command_timeout=0.3)
-    probe = ros.probe()
-    send = command_publisher(probe)
-    wait_until(lambda: stage.count_publishers("current_cmd") >= 1, 5.0, "the command publisher")
-    send(1.0)
-    wait_until(lambda: stage.applied_a == 1.0, 5.0, "the commanded current")
+    stage, probe, send = stage_at_one_ampere(ros, rate_hz=100.0, command_timeout=0.3)
     assert ros.call(probe, Trigger, "stage/stop").success
     deadline = time.monotonic() + 1.0
     while time.monotonic() < deadline:
