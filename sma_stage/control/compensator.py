@@ -103,9 +103,12 @@ def imc_gains(model: IdentifiedModel, control_period_s: float, lead_limit: float
     return {"kp": closed / (closed + period), "ki": 1.0 / (closed + period)}
 
 
-class _NonNegative:
+class _AtLeast:
     """A float setting of the Compensator, kept as `_<name>`; setting it to anything but a finite number
-    >= 0 raises InputError naming it."""
+    >= minimum raises InputError naming it."""
+
+    def __init__(self, minimum: float = 0.0) -> None:
+        self.minimum = minimum
 
     def __set_name__(self, owner: type, name: str) -> None:
         self.name, self.slot = name, f"_{name}"
@@ -114,16 +117,9 @@ class _NonNegative:
         return self if instance is None else getattr(instance, self.slot)
 
     def __set__(self, instance: object, value: float) -> None:
-        setattr(instance, self.slot, _non_negative(self.name, value))
-
-
-class _AtLeastOne(_NonNegative):
-    """A lead limit of the Compensator: a finite number >= 1, else InputError naming it."""
-
-    def __set__(self, instance: object, value: float) -> None:
         number = finite_number(self.name, value)
-        if number < 1.0:
-            raise InputError(f"{self.name} must be at least 1, got {value!r}")
+        if number < self.minimum:
+            raise InputError(f"{self.name} must be at least {self.minimum:g}, got {value!r}")
         setattr(instance, self.slot, number)
 
 
@@ -135,12 +131,12 @@ class Compensator:
     is given).
     """
 
-    kp = _NonNegative()  # proportional gain [m of target per m of error]
-    ki = _NonNegative()  # integral gain [1/s]
-    deadband_m = _NonNegative()  # half-width of the play on the loop's target [m]
-    max_rate_a_per_s = _NonNegative()  # largest change of the current per second [A/s]; 0: no limit
-    lead_limit = _AtLeastOne()  # the lead's largest gain on a change of v* with a measurement (PI loop) [A/A]
-    feedforward_lead_limit = _AtLeastOne()  # the same without a measurement (feedforward) [A/A]
+    kp = _AtLeast()  # proportional gain [m of target per m of error]
+    ki = _AtLeast()  # integral gain [1/s]
+    deadband_m = _AtLeast()  # half-width of the play on the loop's target [m]
+    max_rate_a_per_s = _AtLeast()  # largest change of the current per second [A/s]; 0: no limit
+    lead_limit = _AtLeast(1.0)  # the lead's largest gain on a change of v* with a measurement (PI loop) [A/A]
+    feedforward_lead_limit = _AtLeast(1.0)  # the same without a measurement (feedforward) [A/A]
 
     def __init__(self, model: IdentifiedModel, max_current_a: float = 5.0, method: str = "exact",
                  kp: float = 0.0, ki: float = 0.0, lead_limit: float = DEFAULT_LEAD_LIMIT,

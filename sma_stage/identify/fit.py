@@ -535,13 +535,13 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     return _output_scaled_result(found, scale, y)
 
 
+OUTPUT_SCALE_POWERS = {"a1": 1, "a4": 1, "a5": 1, "a8": 1, "a9": 1, "a11": -1}  # how each parameter scales with y
+
+
 def output_scaled(params: GPIParameters, factor: float) -> GPIParameters:
     """The model whose output is `factor` times this one's: a1, a4, a5, a8 (the envelopes) and a9 (the
-    thresholds) times factor, a11 divided by it, a10 unchanged."""
-    return _scaled(params, factor).replace(a10=params.a10)
-
-
-OUTPUT_SCALE_POWERS = {"a1": 1, "a4": 1, "a5": 1, "a8": 1, "a9": 1, "a11": -1}  # how each parameter scales with y
+    thresholds) times factor, a11 divided by it, the others unchanged (OUTPUT_SCALE_POWERS)."""
+    return params.replace(**{name: getattr(params, name) * factor**power for name, power in OUTPUT_SCALE_POWERS.items()})
 
 
 def _output_scaled_result(found: FitResult, scale: float, y: np.ndarray) -> FitResult:
