@@ -183,7 +183,7 @@ def test_stage_clamps_and_refuses_non_finite_commands(ros):
     wait_until(lambda: stage.rejected_count == 3, 5.0, "three refused commands")
     time.sleep(0.05)
     assert stage.applied_a == -1.5
-    assert stage.state.current_a == -1.5
+    assert stage.reading.current_a == -1.5
 
 
 def test_stage_watchdog_zeroes_a_stale_command(ros):

@@ -1,17 +1,28 @@
-"""The `stage` node: applies `current_cmd` [A] to the stage (the simulator backend) and publishes
+"""The `stage` node, a managed (lifecycle) node: applies `current_cmd` [A] to the stage and publishes
 `joint_states` (stage_x position [m], velocity [m/s]) and `current_applied` (the current applied over the
-step, clamped, zero while stopped or after the watchdog [A]; reliable) at rate_hz, with /diagnostics at
-1 Hz.
+step: clamped, zero while stopped, inactive or after the watchdog [A]; reliable) at rate_hz, with
+/diagnostics at 1 Hz.
 
-Safety: commands are clamped to +-max_current, NaN/inf commands are refused (the last safe command
-stays, but does not refresh the watchdog), the current is zeroed when no command came within
-command_timeout on the steady clock, and `~/stop` zeroes it until `~/resume`.
+Backends: `sim`, the embedded physics simulator, or `visa`, the stage on SCPI instruments described by
+`hardware_file` (sma_stage.plant.visa; docs/hardware.md). Both go through the same lifecycle states:
+configure connects (output off), activate accepts current_cmd, deactivate zeroes the current and switches
+the output off (confirmed), cleanup disconnects; shutdown and errors (Ctrl-C included) switch the output off
+as best they can. `autostart` takes the node to a state by itself at start (auto: active for the simulator,
+inactive for instruments). A hardware fault (lost connection, timeout, garbage, an error in an
+instrument's queue, a protection trip) switches the output off, sends the node to unconfigured and starts
+reconnecting with back-off; a reconnect leaves it inactive: the output is never switched on by itself.
 
-Time: a timer ticks every 1/rate_hz wall seconds (steady clock). With use_sim_time each tick advances
-the simulator by exactly time_scale/rate_hz simulated seconds, publishes /clock from the simulated time
-and stamps joint_states with it. Otherwise the stamps come from the node clock and each tick advances
-the simulator by the steady-clock time since the previous tick times time_scale (at most
-MAX_CATCH_UP_STEPS periods), so simulated time keeps pace with the stamps when the machine is busy.
+Safety: commands are clamped to +-max_current, NaN/inf commands are refused (the last safe command stays,
+but does not refresh the watchdog), `~/stop` zeroes the current until `~/resume`. When no command came
+within command_timeout (steady clock) the simulator's current is zeroed; on instruments the node
+deactivates (output off).
+
+Time: a timer ticks every 1/rate_hz wall seconds (steady clock). With use_sim_time each tick advances the
+simulator by exactly time_scale/rate_hz simulated seconds, publishes /clock from the stage's time and
+stamps joint_states with it. Otherwise the stamps come from the node clock and each tick advances the
+simulator by the steady-clock time since the previous tick times time_scale (at most MAX_CATCH_UP_STEPS
+periods). On instruments the stage's time is the host's steady clock times time_scale (1 for a real stage; a
+loopback test rig may run faster).
 """
 
 from __future__ import annotations
@@ -21,7 +32,7 @@ from dataclasses import fields
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import QoSProfile
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock as ClockMessage
@@ -42,10 +53,15 @@ from sma_stage.nodes._common import (
     quiet_on_shutdown,
     run_node,
 )
-from sma_stage.plant import Effects, StageConfig, StageSimulator
+from sma_stage.plant import Effects, StageConfig
+from sma_stage.plant.hardware import HardwareError, Reading, SimulatedHardware, StageHardware, wire_commands
 
-BACKENDS = ("sim",)
+BACKENDS = ("sim", "visa")
+AUTOSTART = ("auto", "active", "inactive", "unconfigured")
 DIAGNOSTICS_PERIOD_S = 1.0
+MAX_CATCH_UP_STEPS = 5
+LATE_FACTOR = 1.5  # a cycle is late when it starts more than this many periods after the previous one
+FIRST_RECONNECT_S = 1.0
 
 _EFFECT_UNITS = {"ambient_drift_k_per_s": "K/s", "sensor_delay_s": "s", "creep_amplitude_m": "m",
                  "creep_time_constant_s": "s", "creep_reference_m": "m", "load_change_n": "N",
@@ -60,30 +76,78 @@ def effect_params() -> list[Param]:
 
 
 STAGE_PARAMS = [
-    Param("backend", "sim", "stage backend: 'sim' (the embedded physics simulator)", read_only=True),
-    Param("rate_hz", 50.0, "joint_states publication and simulation step rate [Hz, wall clock]", 1.0, 2000.0,
+    Param("backend", "sim", "stage backend: 'sim' (the embedded physics simulator) or 'visa' (SCPI instruments "
+          "described by hardware_file)", read_only=True),
+    Param("hardware_file", "", "the instruments' YAML file for backend 'visa' (config/hardware_example.yaml)",
+          read_only=True),
+    Param("autostart", "auto", "lifecycle state to reach at start: auto (active for sim, inactive for visa), "
+          "active, inactive or unconfigured", read_only=True),
+    Param("rate_hz", 50.0, "joint_states publication and control cycle rate [Hz, wall clock]", 1.0, 2000.0,
           read_only=True),
     Param("max_current", 5.0, "current limit [A]: commands are clamped to +-max_current", 0.0, 20.0),
-    Param("command_timeout", 1.0, "zero the current when no command came within this time [s, steady clock]",
-          0.001, 3600.0),
+    Param("command_timeout", 1.0, "no command within this time [s, steady clock]: current zeroed (sim) or "
+          "node deactivated (visa)", 0.001, 3600.0),
+    Param("reconnect_max_interval", 30.0, "after a hardware fault, reconnect attempts back off from 1 s up to "
+          "this interval [s]; 0 disables reconnecting", 0.0, 3600.0, read_only=True),
     Param("seed", 0, "random seed of the simulated sensor noise", 0, 2**31 - 1, read_only=True),
-    Param("time_scale", 1.0, "simulated seconds per wall second", 0.001, 10000.0, read_only=True),
+    Param("time_scale", 1.0, "stage seconds per wall second (simulator; 1 on a real stage)", 0.001, 10000.0,
+          read_only=True),
     *effect_params(),
 ]
 
 
-def check_backend(name: str) -> str:
-    """The backend name, refused unless it is one this node knows."""
-    if name not in BACKENDS:
-        raise InputError(f"parameter 'backend': unknown backend {name!r} (known: {', '.join(BACKENDS)})")
-    return name
+def check_choice(name: str, value: str, known: tuple[str, ...]) -> str:
+    """value, refused unless it is one of known."""
+    if value not in known:
+        raise InputError(f"parameter '{name}': unknown value {value!r} (known: {', '.join(known)})")
+    return value
 
 
-MAX_CATCH_UP_STEPS = 5
+def make_hardware(values: dict[str, object]) -> StageHardware:
+    """The backend the parameters name (InputError for a bad or missing hardware file)."""
+    if check_choice("backend", str(values["backend"]), BACKENDS) == "sim":
+        effects = Effects(**{item.name: values[item.name] for item in fields(Effects)})
+        return SimulatedHardware(StageConfig(), effects, int(values["seed"]))
+    from sma_stage.plant.visa import VisaStage, load_bridge_config
+
+    if not values["hardware_file"]:
+        raise InputError("parameter 'hardware_file': backend 'visa' needs the instruments' YAML file "
+                         "(see config/hardware_example.yaml)")
+    return VisaStage(load_bridge_config(str(values["hardware_file"])), time_scale=float(values["time_scale"]))
 
 
-class StageNode(Node):
-    """The stage: a current command in, the stage position out, with clamping and a watchdog."""
+class CycleTiming:
+    """Start-to-start intervals of the control cycle and how long its I/O took [s, steady clock]."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.cycles = self.late = 0
+        self.longest_interval_s = self.longest_io_s = 0.0
+        self._last_start_ns: int | None = None
+
+    def started(self, now_ns: int) -> None:
+        """Count a cycle starting at now_ns."""
+        if self._last_start_ns is not None:
+            interval_s = (now_ns - self._last_start_ns) * 1e-9
+            self.late += interval_s > LATE_FACTOR * self.period_s
+            self.longest_interval_s = max(self.longest_interval_s, interval_s)
+        self.cycles += 1
+        self._last_start_ns = now_ns
+
+    def ended(self, io_s: float) -> None:
+        """Note how long the cycle's hardware I/O took."""
+        self.longest_io_s = max(self.longest_io_s, io_s)
+
+    def values(self) -> dict[str, object]:
+        """Diagnostic key values."""
+        return {"cycles": self.cycles, "late_cycles": self.late,
+                "late_cycles_percent": round(100.0 * self.late / max(self.cycles - 1, 1), 3),
+                "longest_cycle_interval_ms": round(1e3 * self.longest_interval_s, 3),
+                "longest_cycle_io_ms": round(1e3 * self.longest_io_s, 3)}
+
+
+class StageNode(LifecycleNode):
+    """The stage: a current command in, the stage position out, with clamping, a watchdog and the lifecycle."""
 
     NODE_NAME = "stage"
 
@@ -91,17 +155,21 @@ class StageNode(Node):
         super().__init__(self.NODE_NAME, **node_options)
         try:
             values = declare_all(self, STAGE_PARAMS)
-            check_backend(values["backend"])
+            self.autostart = check_choice("autostart", str(values["autostart"]), AUTOSTART)
+            self.hardware = make_hardware(values)
         except InputError:
             self.destroy_node()
             raise
-        effects = Effects(**{item.name: values[item.name] for item in fields(Effects)})
-        self.simulator = StageSimulator(StageConfig(), effects, seed=int(values["seed"]))
+        self.backend = self.hardware.kind
         self.rate_hz = float(values["rate_hz"])
         self.time_scale = float(values["time_scale"])
         self.sim_dt_s = self.time_scale / self.rate_hz
+        self.reconnect_max_s = float(values["reconnect_max_interval"])
         self.use_sim_time = bool(self.get_parameter("use_sim_time").value)
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.lifecycle = "unconfigured"
+        self.identity: dict[str, str] = {}
+        self.fault: str | None = None
         self.command_a = 0.0
         self.applied_a = 0.0
         self.last_command: Time | None = None
@@ -110,9 +178,13 @@ class StageNode(Node):
         self.published_steps = 0  # steps published: one joint_states and one current_applied each
         self.clamped_count = 0
         self.rejected_count = 0
+        self.faults = 0
         self.warnings = ThrottledWarnings(self)
-        self.state = self.simulator.state
+        self.reading: Reading | None = None
+        self.timing = CycleTiming(1.0 / self.rate_hz)
         self._last_tick: Time | None = None
+        self._reconnect_s = FIRST_RECONNECT_S
+        self._reconnect_at_ns: int | None = None  # steady time of the next reconnect attempt
 
         self.joint_pub = self.create_publisher(JointState, "joint_states", STATE_PUBLISH_QOS)
         self.applied_pub = self.create_publisher(Float64, "current_applied", COMMAND_QOS)
@@ -124,8 +196,20 @@ class StageNode(Node):
         self.create_service(Trigger, "~/resume", self.on_resume)
         self.create_timer(1.0 / self.rate_hz, quiet_on_shutdown(self, self.on_tick), clock=self.steady)
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics), clock=self.steady)
-        self.get_logger().info(f"stage ready: backend sim, {self.rate_hz:g} Hz, "
-                               f"{self.sim_dt_s:g} s simulated per step, max_current {self.max_current:g} A")
+        self.get_logger().info(f"stage ready: backend {self.backend}, {self.rate_hz:g} Hz, "
+                               f"max_current {self.max_current:g} A, autostart {self.autostart}")
+        self.start()
+
+    def start(self) -> None:
+        """Go to the autostart state: configure (connect), then activate for the simulator or when asked."""
+        target = self.autostart if self.autostart != "auto" else ("active" if self.backend == "sim" else "inactive")
+        if target == "unconfigured":
+            return
+        if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+            self._schedule_reconnect()
+            return
+        if target == "active":
+            self.trigger_activate()
 
     @property
     def max_current(self) -> float:
@@ -137,14 +221,121 @@ class StageNode(Node):
         """The watchdog timeout [s] in force."""
         return float(self.get_parameter("command_timeout").value)
 
+    # -- lifecycle --------------------------------------------------------------------------------------
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Connect and set the hardware up with the output off."""
+        try:
+            self.identity = self.hardware.connect()
+        except HardwareError as error:
+            self.fault = str(error)
+            self.get_logger().error(f"configure failed, output off: {error}")
+            return TransitionCallbackReturn.FAILURE
+        self.fault = None
+        self._reconnect_at_ns = None
+        self._last_tick = None
+        self.lifecycle = "inactive"
+        self.get_logger().info("configured, output off: " + "; ".join(f"{k}: {v}" for k, v in self.identity.items()))
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Switch the output on at zero current and accept current_cmd."""
+        try:
+            self.hardware.enable()
+        except HardwareError as error:
+            self.fault = str(error)
+            self.get_logger().error(f"activate failed: {error}")
+            return TransitionCallbackReturn.ERROR
+        self.command_a, self.last_command, self.watchdog_tripped = 0.0, None, False
+        self.lifecycle = "active"
+        self.get_logger().info("active: accepting current_cmd")
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Zero the current, output off, relay open, confirmed by reading back."""
+        self.lifecycle = "inactive"
+        self.command_a = self.applied_a = 0.0
+        if not self._stop_hardware():
+            return TransitionCallbackReturn.ERROR
+        self.get_logger().info("inactive: current zero, output off (confirmed)")
+        return TransitionCallbackReturn.ERROR if self.fault else super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Disconnect."""
+        self._disconnect()
+        self.get_logger().info("unconfigured: disconnected")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Output off (best effort) and disconnect."""
+        self._stop_hardware()
+        self._disconnect()
+        self._reconnect_at_ns = None
+        self.lifecycle = "finalized"
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """After a failed transition or a fault: output off (best effort), disconnect, reconnect later."""
+        self._stop_hardware()
+        self._disconnect()
+        self.get_logger().error(f"unconfigured after an error: {self.fault or 'a transition failed'}; "
+                                "the output was switched off")
+        self._schedule_reconnect()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _stop_hardware(self) -> bool:
+        """Zero current and output off, confirmed; False (and the fault noted) when it is not."""
+        try:
+            self.hardware.stop()
+        except HardwareError as error:
+            self.fault = self.fault or str(error)
+            self.get_logger().error(f"switching the output off: {error}")
+            return False
+        return True
+
+    def _disconnect(self) -> None:
+        self.hardware.close()
+        self.lifecycle = "unconfigured"
+
+    def on_fault(self, reason: str) -> None:
+        """A hardware fault in a cycle: output off, to unconfigured (through error processing), reconnect."""
+        self.fault, self.faults = reason, self.faults + 1
+        self.get_logger().error(f"hardware fault: {reason}; switching the output off")
+        if self.lifecycle == "active":
+            self.trigger_deactivate()  # on_deactivate returns ERROR while a fault stands: on to on_error
+        elif self.lifecycle == "inactive":
+            self._stop_hardware()
+            self.trigger_cleanup()
+            self._schedule_reconnect()
+
+    def _schedule_reconnect(self) -> None:
+        if self.reconnect_max_s <= 0.0 or self._reconnect_at_ns is not None or self.lifecycle == "finalized":
+            return
+        self.get_logger().warning(f"reconnecting in {self._reconnect_s:g} s (the output stays off)")
+        self._reconnect_at_ns = self.steady.now().nanoseconds + int(self._reconnect_s * 1e9)
+
+    def _reconnect_when_due(self) -> None:
+        """While unconfigured after a fault: try to configure when the back-off has passed (never activates)."""
+        if self._reconnect_at_ns is None or self.steady.now().nanoseconds < self._reconnect_at_ns:
+            return
+        self._reconnect_at_ns = None
+        if self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+            self._reconnect_s = FIRST_RECONNECT_S
+            self.get_logger().warning("reconnected; inactive with the output off until activated")
+            return
+        self._reconnect_s = min(2.0 * self._reconnect_s, self.reconnect_max_s)
+        self._schedule_reconnect()
+
+    # -- commands -----------------------------------------------------------------------------------------
     def on_command(self, message: Float64) -> None:
-        """Store a command [A]: NaN/inf refused, out-of-range values clamped."""
+        """Store a command [A]: NaN/inf refused, out-of-range values clamped; ignored unless active."""
         value = float(message.data)
         if not finite(value):
             self.rejected_count += 1
             self.warnings.warn("rejected", f"refused a non-finite current command ({value}); keeping {self.command_a:g} A")
             return
-        if self.stopped:
+        if self.stopped or self.lifecycle != "active":
+            if self.lifecycle != "active":
+                self.warnings.warn("inactive", f"current command ignored: the stage is {self.lifecycle}")
             return
         limit = self.max_current
         clamped = min(max(value, -limit), limit)
@@ -161,7 +352,9 @@ class StageNode(Node):
         return (self.steady.now() - self.last_command).nanoseconds * 1e-9
 
     def current_to_apply(self) -> float:
-        """The current [A] for this step: zero when stopped or when the command is stale."""
+        """The current [A] for this step: zero unless active, when stopped or when the command is stale."""
+        if self.lifecycle != "active":
+            return 0.0
         stale = self.command_age_s() > self.command_timeout_s and not self.stopped  # stopped: zero for that reason
         if stale and not self.watchdog_tripped and self.last_command is not None:
             self.get_logger().warning(f"no current command for {self.command_timeout_s:g} s: current set to zero")
@@ -172,9 +365,9 @@ class StageNode(Node):
         return min(max(self.command_a, -limit), limit)
 
     def step_length_s(self) -> float:
-        """Simulated seconds for this tick: a fixed step on simulated time; on wall time the steady-clock
-        time since the last tick times time_scale (at most MAX_CATCH_UP_STEPS steps), so a tick that came
-        late does not leave the simulation behind the stamps."""
+        """Stage seconds for this tick: a fixed step on simulated time; on wall time the steady-clock time since
+        the last tick times time_scale (at most MAX_CATCH_UP_STEPS steps), so a tick that came late does not
+        leave the simulation behind the stamps."""
         if self.use_sim_time:
             return self.sim_dt_s
         now = self.steady.now()
@@ -183,28 +376,42 @@ class StageNode(Node):
         return min(max(elapsed_s, 0.0), MAX_CATCH_UP_STEPS / self.rate_hz) * self.time_scale
 
     def on_tick(self) -> None:
-        """Advance the simulator one step and publish current_applied and joint_states (and /clock with
-        use_sim_time)."""
-        self.applied_a = self.current_to_apply()
-        step_s = self.step_length_s()
-        if step_s > 0.0:
-            self.state = self.simulator.step(self.applied_a, step_s)
+        """One cycle: apply the current, read the stage, publish current_applied and joint_states (and /clock
+        with use_sim_time); a hardware fault switches the output off. Unconfigured: reconnect when due."""
+        if self.lifecycle not in ("active", "inactive"):
+            self._reconnect_when_due()
+            return
+        start_ns = self.steady.now().nanoseconds
+        self.timing.started(start_ns)
+        current_a = self.current_to_apply()
+        if self.watchdog_tripped and self.backend != "sim" and self.lifecycle == "active":
+            self.get_logger().warning("deactivating: no current command within command_timeout")
+            self.trigger_deactivate()
+            return
+        try:
+            self.hardware.write(wire_commands(current_a))
+            self.reading = self.hardware.read(self.step_length_s())
+        except HardwareError as error:
+            self.on_fault(str(error))
+            return
+        self.timing.ended((self.steady.now().nanoseconds - start_ns) * 1e-9)
+        self.applied_a = self.reading.current_a
         stamp = self.stamp()
         if self.clock_pub is not None:
             self.clock_pub.publish(ClockMessage(clock=stamp))
         message = JointState()
         message.header.stamp = stamp
         message.name = [JOINT_NAME]
-        message.position = [self.state.measured_position_m]
-        message.velocity = [self.state.velocity_m_s]
+        message.position = [self.reading.position_m]
+        message.velocity = [self.reading.states["stage/velocity"]]
         self.applied_pub.publish(Float64(data=float(self.applied_a)))
         self.joint_pub.publish(message)
         self.published_steps += 1
 
     def stamp(self):
-        """The time of the current state: simulated time with use_sim_time, else the node clock."""
+        """The time of the current state: the stage's time with use_sim_time, else the node clock."""
         if self.use_sim_time:
-            return Time(nanoseconds=round(self.state.time_s * 1e9)).to_msg()
+            return Time(nanoseconds=round(self.reading.time_s * 1e9)).to_msg()
         return self.get_clock().now().to_msg()
 
     def on_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -227,34 +434,45 @@ class StageNode(Node):
         return response
 
     def close(self) -> None:
-        """Say how many steps were published (a soak counts them against a bag), before the node goes."""
+        """At exit (Ctrl-C, SIGTERM): output off as far as possible, disconnect, and say how many steps were
+        published (a soak counts them against a bag)."""
+        self._reconnect_at_ns = None
+        if self.lifecycle in ("active", "inactive"):
+            if self._stop_hardware():
+                self.get_logger().info("output off (confirmed)")
+            self._disconnect()
         self.get_logger().info(f"published {self.published_steps} steps (joint_states and current_applied)")
 
     def diagnostic_status(self) -> DiagnosticStatus:
-        """The stage's health as one DiagnosticStatus (wires, command age, clamping, stop flag)."""
-        state = self.state
-        level, text = DiagnosticStatus.OK, "running"
-        if self.stopped:
+        """The stage's health as one DiagnosticStatus (lifecycle, hardware, command age, cycle timing)."""
+        level, text = DiagnosticStatus.OK, self.lifecycle
+        if self.fault:
+            level, text = DiagnosticStatus.ERROR, f"{self.lifecycle}: {self.fault}"
+        elif self.stopped:
             level, text = DiagnosticStatus.WARN, "stopped (call ~/resume)"
         elif self.watchdog_tripped:
             level, text = DiagnosticStatus.WARN, "no recent command: current held at zero"
+        elif self.lifecycle == "active":
+            text = "running"
         values = {
-            "wire_a_temperature_k": state.wire_temperatures_k[0],
-            "wire_b_temperature_k": state.wire_temperatures_k[1],
-            "wire_a_martensite_fraction": state.martensite_fractions[0],
-            "wire_b_martensite_fraction": state.martensite_fractions[1],
+            "lifecycle_state": self.lifecycle,
+            **self.hardware.status(),
             "applied_current_a": self.applied_a,
-            "position_m": state.measured_position_m,
-            "simulated_time_s": state.time_s,
+            "position_m": self.reading.position_m if self.reading is not None else "none",
+            "stage_time_s": self.reading.time_s if self.reading is not None else "none",
             "command_age_s": self.command_age_s(),
             "clamped_commands": self.clamped_count,
             "rejected_commands": self.rejected_count,
             "stopped": self.stopped,
             "watchdog_tripped": self.watchdog_tripped,
+            "faults": self.faults,
+            "last_fault": self.fault or "none",
             "published_steps": self.published_steps,
+            **self.timing.values(),
         }
-        return DiagnosticStatus(level=level, name=f"{self.get_name()}: sim stage", message=text,
-                                hardware_id="sma_stage_sim",
+        hardware_id = "; ".join(self.identity.values()) or f"sma_stage {self.backend}"
+        return DiagnosticStatus(level=level, name=f"{self.get_name()}: {self.backend} stage", message=text,
+                                hardware_id=hardware_id,
                                 values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
 
     def publish_diagnostics(self) -> None:

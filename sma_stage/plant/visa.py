@@ -1,0 +1,632 @@
+"""The stage on real instruments over SCPI (PyVISA with the pure-Python pyvisa-py backend): a programmable
+supply for the heating current, a relay that routes it to wire A or wire B, and a multimeter or DAQ reading
+the displacement sensor. Command templates, resources, limits and scaling come from a YAML file
+(config/hardware_example.yaml; docs/hardware.md).
+
+Safety lives here, not in the node: the relay moves only at zero current (read back) and after a settle time
+(break before make), each wire has a current cap and an I^2 t (heating) budget, every read has a finite
+timeout, and each cycle polls the instruments' error queues and the supply's protection trip.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from string import Formatter
+
+import yaml
+
+from sma_stage.errors import InputError
+from sma_stage.plant.hardware import (
+    STAGE_POSITION,
+    STAGE_VELOCITY,
+    WIRE_A_CURRENT,
+    WIRE_B_CURRENT,
+    HardwareError,
+    Reading,
+    StageHardware,
+    signed_current,
+    wire_commands,
+)
+
+WIRES = ("wire_a", "wire_b")
+RELAY_POSITIONS = ("wire_a", "wire_b", "open")
+SUPPLY_COMMANDS = ("set_current", "output_on", "output_off", "output_state", "measure_current", "measure_voltage",
+                   "tripped")
+TEMPLATE_FIELDS = {"current_a", "voltage_v", "protection_a"}
+MAX_ERRORS_DRAINED = 20  # SYST:ERR? is read until "0,..." or this many entries
+
+
+@dataclass(frozen=True)
+class InstrumentConfig:
+    """One instrument: its VISA resource string and the commands sent after *RST/*CLS on configure."""
+
+    name: str
+    resource: str
+    setup: tuple[str, ...] = ()
+    read_termination: str = "\n"
+    write_termination: str = "\n"
+    error_query: str = "SYST:ERR?"
+
+
+@dataclass(frozen=True)
+class SupplyConfig:
+    """The heating supply: which instrument, its command templates, the voltage compliance [V] and the
+    instrument's own over-current protection level [A]."""
+
+    instrument: str
+    commands: Mapping[str, str]
+    voltage_compliance_v: float
+    protection_a: float
+
+
+@dataclass(frozen=True)
+class RelayConfig:
+    """The relay: the commands that put it on wire A, wire B or open, the queries that say which coil is on,
+    and the settle time [s] after it moves."""
+
+    instrument: str
+    commands: Mapping[str, tuple[str, ...]]
+    state_queries: Mapping[str, str]
+    settle_s: float
+
+
+@dataclass(frozen=True)
+class PositionConfig:
+    """The displacement reading: query, and position [m] = scale_m_per_unit * reading + offset_m."""
+
+    instrument: str
+    query: str
+    scale_m_per_unit: float
+    offset_m: float
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Per-wire current cap [A]; the I^2 t budget [A^2 s] of a wire's heat, which decays with
+    i2t_time_constant_s [s]; the read-back current [A] that counts as zero; the time [s] the current must
+    have been commanded to zero before the relay may move."""
+
+    max_current_a: Mapping[str, float]
+    i2t_budget_a2s: float
+    i2t_time_constant_s: float
+    zero_current_a: float
+    zero_settle_s: float
+
+    def continuous_current_a(self) -> float:
+        """The current [A] a wire may carry for ever under its I^2 t budget."""
+        return math.sqrt(self.i2t_budget_a2s / self.i2t_time_constant_s)
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """The whole instrument set-up of config/hardware_*.yaml."""
+
+    instruments: Mapping[str, InstrumentConfig]
+    supply: SupplyConfig
+    relay: RelayConfig
+    position: PositionConfig
+    limits: Limits
+    timeout_ms: float = 500.0
+    source: str = ""
+
+
+def load_bridge_config(path: str | Path) -> BridgeConfig:
+    """Read and check a hardware YAML file; InputError naming the file and the first bad entry."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as error:
+        raise InputError(f"{path}: cannot read the hardware file: {error.strerror or error}") from None
+    except yaml.YAMLError as error:
+        raise InputError(f"{path}: not valid YAML: {' '.join(str(error).split())}") from None
+    try:
+        return bridge_config(data, str(path))
+    except InputError as error:
+        raise InputError(f"{path}: {error}") from None
+
+
+def bridge_config(data: object, source: str = "") -> BridgeConfig:
+    """A BridgeConfig from the parsed YAML mapping; InputError for the first missing or bad entry."""
+    top = _mapping(data, "the file")
+    instruments = {name: _instrument(name, entry) for name, entry in _mapping(top.get("instruments"),
+                                                                              "instruments").items()}
+    if not instruments:
+        raise InputError("instruments: at least one instrument is needed")
+    supply_data, relay_data = _mapping(top.get("supply"), "supply"), _mapping(top.get("relay"), "relay")
+    position_data, limits_data = _mapping(top.get("position"), "position"), _mapping(top.get("limits"), "limits")
+    supply = SupplyConfig(
+        instrument=_instrument_name(supply_data, "supply", instruments),
+        commands={name: _template(supply_data, name, "supply") for name in SUPPLY_COMMANDS},
+        voltage_compliance_v=_positive(supply_data, "voltage_compliance_v", "supply"),
+        protection_a=_positive(supply_data, "protection_a", "supply"),
+    )
+    relay_commands = _mapping(relay_data.get("commands"), "relay.commands")
+    relay_states = _mapping(relay_data.get("state"), "relay.state")
+    relay = RelayConfig(
+        instrument=_instrument_name(relay_data, "relay", instruments),
+        commands={position: _command_list(relay_commands, position, "relay.commands") for position in RELAY_POSITIONS},
+        state_queries={wire: _template(relay_states, wire, "relay.state") for wire in WIRES},
+        settle_s=_non_negative(relay_data, "settle_s", "relay"),
+    )
+    position = PositionConfig(
+        instrument=_instrument_name(position_data, "position", instruments),
+        query=_template(position_data, "query", "position"),
+        scale_m_per_unit=_finite(position_data, "scale_m_per_unit", "position", nonzero=True),
+        offset_m=_finite(position_data, "offset_m", "position"),
+    )
+    caps = _mapping(limits_data.get("max_current_a"), "limits.max_current_a")
+    limits = Limits(
+        max_current_a={wire: _positive(caps, wire, "limits.max_current_a") for wire in WIRES},
+        i2t_budget_a2s=_positive(limits_data, "i2t_budget_a2s", "limits"),
+        i2t_time_constant_s=_positive(limits_data, "i2t_time_constant_s", "limits"),
+        zero_current_a=_positive(limits_data, "zero_current_a", "limits"),
+        zero_settle_s=_non_negative(limits_data, "zero_settle_s", "limits"),
+    )
+    if supply.protection_a <= max(limits.max_current_a.values()):
+        raise InputError(f"supply.protection_a ({supply.protection_a:g} A) must be above the wires' current caps "
+                         f"({max(limits.max_current_a.values()):g} A): the instrument's protection is the last resort")
+    timeout_ms = _positive(top, "timeout_ms", "the file") if "timeout_ms" in top else 500.0
+    return BridgeConfig(instruments, supply, relay, position, limits, timeout_ms, source)
+
+
+def _mapping(value: object, where: str) -> dict:
+    if not isinstance(value, dict):
+        raise InputError(f"{where} must be a mapping (key: value entries), got {type(value).__name__}")
+    return value
+
+
+def _instrument(name: object, entry: object) -> InstrumentConfig:
+    entry = _mapping(entry, f"instruments.{name}")
+    resource = entry.get("resource")
+    if not isinstance(resource, str) or not resource.strip():
+        raise InputError(f"instruments.{name}.resource must be a VISA resource string, e.g. "
+                         "TCPIP0::192.168.1.20::5025::SOCKET")
+    setup = entry.get("setup", [])
+    if not isinstance(setup, list) or not all(isinstance(line, str) for line in setup):
+        raise InputError(f"instruments.{name}.setup must be a list of SCPI commands")
+    for line in setup:
+        _check_template(line, f"instruments.{name}.setup")
+    options = {key: entry[key] for key in ("read_termination", "write_termination", "error_query") if key in entry}
+    for key, value in options.items():
+        if not isinstance(value, str) or not value:
+            raise InputError(f"instruments.{name}.{key} must be a non-empty string")
+    return InstrumentConfig(str(name), resource.strip(), tuple(setup), **options)
+
+
+def _instrument_name(data: dict, where: str, instruments: Mapping[str, InstrumentConfig]) -> str:
+    name = data.get("instrument")
+    if name not in instruments:
+        raise InputError(f"{where}.instrument must name one of the instruments ({', '.join(instruments)}), "
+                         f"got {name!r}")
+    return name
+
+
+def _template(data: dict, key: str, where: str) -> str:
+    value = data.get(key)
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"{where}.{key} must be an SCPI command string")
+    _check_template(value, f"{where}.{key}")
+    return value
+
+
+def _command_list(data: dict, key: str, where: str) -> tuple[str, ...]:
+    value = data.get(key)
+    commands = [value] if isinstance(value, str) else value
+    if not isinstance(commands, list) or not commands or not all(isinstance(c, str) and c.strip() for c in commands):
+        raise InputError(f"{where}.{key} must be an SCPI command or a list of them")
+    for command in commands:
+        _check_template(command, f"{where}.{key}")
+    return tuple(commands)
+
+
+def _check_template(text: str, where: str) -> None:
+    try:
+        names = {name for _, name, _, _ in Formatter().parse(text) if name is not None}
+        text.format(current_a=0.0, voltage_v=0.0, protection_a=0.0)
+    except (ValueError, IndexError, KeyError) as error:
+        raise InputError(f"{where}: bad command template {text!r}: {error}") from None
+    unknown = names - TEMPLATE_FIELDS
+    if unknown:
+        raise InputError(f"{where}: unknown field {sorted(unknown)[0]!r} in {text!r} "
+                         f"(known: {', '.join(sorted(TEMPLATE_FIELDS))})")
+
+
+def _finite(data: dict, key: str, where: str, nonzero: bool = False) -> float:
+    value = data.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or (nonzero and value == 0):
+        raise InputError(f"{where}.{key} must be a finite{' non-zero' if nonzero else ''} number, got {value!r}")
+    return float(value)
+
+
+def _positive(data: dict, key: str, where: str) -> float:
+    value = _finite(data, key, where)
+    if value <= 0:
+        raise InputError(f"{where}.{key} must be positive, got {value:g}")
+    return value
+
+
+def _non_negative(data: dict, key: str, where: str) -> float:
+    value = _finite(data, key, where)
+    if value < 0:
+        raise InputError(f"{where}.{key} must be zero or positive, got {value:g}")
+    return value
+
+
+def open_with_pyvisa(config: InstrumentConfig, timeout_ms: float) -> object:
+    """A pyvisa resource for the instrument, through the pure-Python pyvisa-py backend ("@py")."""
+    import pyvisa
+
+    manager = pyvisa.ResourceManager("@py")
+    resource = manager.open_resource(config.resource, read_termination=config.read_termination,
+                                     write_termination=config.write_termination, timeout=timeout_ms,
+                                     open_timeout=timeout_ms)
+    _no_delay(resource)
+    return resource
+
+
+def _no_delay(resource: object) -> None:
+    """TCP_NODELAY on a raw-socket resource: without it Nagle's algorithm holds a small command behind the
+    previous one's acknowledgement, up to 40 ms. pyvisa-py 0.8.1 wires VI_ATTR_TCPIP_NODELAY's setter to a
+    method that raises, so the option is set on its socket."""
+    session = getattr(getattr(resource, "visalib", None), "sessions", {}).get(getattr(resource, "session", None))
+    connection = getattr(session, "interface", None)
+    if isinstance(connection, socket.socket):
+        connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+def _visa_errors() -> tuple[type[BaseException], ...]:
+    try:
+        from pyvisa.errors import VisaIOError
+    except ImportError:  # pragma: no cover -- pyvisa is a pinned requirement
+        return (OSError,)
+    return (VisaIOError, OSError, UnicodeDecodeError)
+
+
+class ScpiInstrument:
+    """One SCPI instrument: write, query with the resource's finite timeout, drain the error queue. Every
+    failure is a HardwareError naming the instrument and the command."""
+
+    def __init__(self, config: InstrumentConfig, resource: object) -> None:
+        self.config = config
+        self.name = config.name
+        self._resource = resource
+        self._errors = _visa_errors()
+
+    def write(self, command: str) -> None:
+        """Send a command."""
+        try:
+            self._resource.write(command)
+        except self._errors as error:
+            raise HardwareError(f"{self.name}: cannot send {command!r}: {_describe(error)}") from None
+
+    def query(self, command: str) -> str:
+        """Send a query and return the stripped reply."""
+        try:
+            reply = self._resource.query(command)
+        except self._errors as error:
+            raise HardwareError(f"{self.name}: no reply to {command!r}: {_describe(error)}") from None
+        return str(reply).strip()
+
+    def query_number(self, command: str) -> float:
+        """A query whose reply is one finite number."""
+        reply = self.query(command)
+        try:
+            value = float(reply.split(",")[0])
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise HardwareError(f"{self.name}: reply to {command!r} is not a number: {reply[:40]!r}")
+        return value
+
+    def query_flag(self, command: str) -> bool:
+        """A query whose reply is ON/OFF, 1/0 or YES/NO."""
+        reply = self.query(command)
+        word = reply.upper().lstrip("+")
+        if word in ("1", "ON", "YES", "TRUE"):
+            return True
+        if word in ("0", "OFF", "NO", "FALSE"):
+            return False
+        raise HardwareError(f"{self.name}: reply to {command!r} is not ON/OFF: {reply[:40]!r}")
+
+    def errors(self) -> list[str]:
+        """The entries in the instrument's error queue (it is left empty)."""
+        found = []
+        for _ in range(MAX_ERRORS_DRAINED):
+            reply = self.query(self.config.error_query)
+            code = reply.split(",", 1)[0].strip().lstrip("+")
+            try:
+                number = int(code)
+            except ValueError:
+                raise HardwareError(f"{self.name}: reply to {self.config.error_query!r} is not an error entry: "
+                                    f"{reply[:40]!r}") from None
+            if number == 0:
+                return found
+            found.append(reply)
+        return found
+
+    def close(self) -> None:
+        """Close the connection (never raises)."""
+        try:
+            self._resource.close()
+        except Exception:  # noqa: BLE001 -- closing a broken connection is best effort
+            pass
+
+
+def _describe(error: BaseException) -> str:
+    text = " ".join(str(error).split()) or type(error).__name__
+    return text[:120]
+
+
+class I2tBudget:
+    """A wire's heat as I^2 t [A^2 s] that decays with a time constant: heat <- heat e^(-dt/tau) + I^2 dt."""
+
+    def __init__(self, budget_a2s: float, time_constant_s: float) -> None:
+        self.budget_a2s = budget_a2s
+        self.time_constant_s = time_constant_s
+        self.heat_a2s = 0.0
+
+    def add(self, current_a: float, dt_s: float) -> None:
+        """Account for current_a [A] flowing for dt_s [s]."""
+        self.heat_a2s = self.heat_a2s * math.exp(-dt_s / self.time_constant_s) + current_a * current_a * dt_s
+
+    def allowed_a(self, cap_a: float) -> float:
+        """The current [A] allowed now: the cap, or the continuous level once the budget is spent."""
+        if self.heat_a2s < self.budget_a2s:
+            return cap_a
+        return min(cap_a, math.sqrt(self.budget_a2s / self.time_constant_s))
+
+
+Opener = Callable[[InstrumentConfig, float], object]
+
+
+class VisaStage(StageHardware):
+    """The two-wire stage on SCPI instruments: supply, relay and displacement reading (see the module doc).
+
+    time_scale: stage seconds per host second; 1 for a real stage (a loopback test server may run faster).
+    """
+
+    kind = "visa"
+
+    def __init__(self, config: BridgeConfig, opener: Opener = open_with_pyvisa, time_scale: float = 1.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.config = config
+        self._opener = opener
+        self.time_scale = time_scale
+        self._clock = clock
+        self.instruments: dict[str, ScpiInstrument] = {}
+        self.identity: dict[str, str] = {}
+        self._budgets = {wire: I2tBudget(config.limits.i2t_budget_a2s, config.limits.i2t_time_constant_s)
+                         for wire in WIRES}
+        self._reset_state()
+
+    def _reset_state(self) -> None:
+        self.relay = "open"
+        self.output_on = False
+        self.set_current_a = None  # the value last sent to the supply [A]; None: unknown
+        self.readback_a = 0.0
+        self._zero_since: float | None = None
+        self._relay_moved_at = -math.inf
+        self._t0 = self._clock()
+        self._last_read: tuple[float, float] | None = None
+        self.trips = 0
+        self.errors_seen: list[str] = []
+        self.limited = {wire: False for wire in WIRES}
+
+    # -- connection ---------------------------------------------------------------------------------
+    def connect(self) -> dict[str, str]:
+        self.close()
+        self._reset_state()
+        try:
+            for name, config in self.config.instruments.items():
+                self.instruments[name] = ScpiInstrument(config, self._open(config))
+            for instrument in self.instruments.values():
+                instrument.write("*RST")
+                instrument.write("*CLS")
+                self.identity[instrument.name] = instrument.query("*IDN?")
+                for command in instrument.config.setup:
+                    instrument.write(self._fill(command, 0.0))
+            self._switch_off()
+            self._check_error_queues()
+        except HardwareError:
+            self.close()
+            raise
+        return dict(self.identity)
+
+    def _open(self, config: InstrumentConfig) -> object:
+        try:
+            return self._opener(config, self.config.timeout_ms)
+        except Exception as error:  # noqa: BLE001 -- pyvisa raises many kinds for a resource it cannot open
+            raise HardwareError(f"{config.name}: cannot connect to {config.resource}: {_describe(error)}") from None
+
+    def close(self) -> None:
+        for instrument in self.instruments.values():
+            instrument.close()
+        self.instruments = {}
+        self.output_on = False
+
+    @property
+    def connected(self) -> bool:
+        """True between a successful connect() and close()."""
+        return bool(self.instruments)
+
+    # -- commands -------------------------------------------------------------------------------------
+    def _fill(self, template: str, current_a: float) -> str:
+        supply = self.config.supply
+        return template.format(current_a=current_a, voltage_v=supply.voltage_compliance_v,
+                               protection_a=supply.protection_a)
+
+    def _supply(self) -> ScpiInstrument:
+        return self._instrument(self.config.supply.instrument)
+
+    def _instrument(self, name: str) -> ScpiInstrument:
+        try:
+            return self.instruments[name]
+        except KeyError:
+            raise HardwareError(f"{name}: not connected") from None
+
+    def _send_current(self, current_a: float) -> None:
+        if current_a == self.set_current_a:
+            return
+        self._supply().write(self._fill(self.config.supply.commands["set_current"], current_a))
+        self.set_current_a = current_a
+        if current_a == 0.0:
+            self._zero_since = self._clock()
+        else:
+            self._zero_since = None
+
+    def _move_relay(self, position: str) -> None:
+        relay = self._instrument(self.config.relay.instrument)
+        for command in self.config.relay.commands[position]:
+            relay.write(command)
+        self.relay = position
+        self._relay_moved_at = self._clock()
+
+    def _switch_off(self) -> None:
+        self._send_current(0.0)
+        self._supply().write(self.config.supply.commands["output_off"])
+        self.output_on = False
+        self._move_relay("open")
+
+    def enable(self) -> None:
+        self._send_current(0.0)
+        self._supply().write(self.config.supply.commands["output_on"])
+        self.output_on = True
+
+    def write(self, commands: Mapping[str, float]) -> None:
+        current_a = signed_current(commands) if self.output_on else 0.0
+        wanted = "wire_a" if current_a > 0.0 else "wire_b" if current_a < 0.0 else None
+        if wanted is None:
+            self._send_current(0.0)
+        elif wanted != self.relay:
+            self._break_before_make(wanted)
+        elif self._clock() - self._relay_moved_at < self.config.relay.settle_s:
+            self._send_current(0.0)
+        else:
+            self._send_current(self._limited(wanted, abs(current_a)))
+
+    def _break_before_make(self, wanted: str) -> None:
+        """Toward moving the relay: zero the current; move only once it has been zero (commanded for
+        zero_settle_s and read back below zero_current_a)."""
+        self._send_current(0.0)
+        limits = self.config.limits
+        settled = self._zero_since is not None and self._clock() - self._zero_since >= limits.zero_settle_s
+        if settled and abs(self.readback_a) <= limits.zero_current_a:
+            self._move_relay(wanted)
+
+    def _limited(self, wire: str, current_a: float) -> float:
+        allowed = self._budgets[wire].allowed_a(self.config.limits.max_current_a[wire])
+        self.limited[wire] = current_a > allowed
+        return min(current_a, allowed)
+
+    # -- state ------------------------------------------------------------------------------------------
+    def read(self, period_s: float) -> Reading:
+        now = self._clock()
+        supply, commands = self._supply(), self.config.supply.commands
+        position = self.config.position
+        raw = self._instrument(position.instrument).query_number(position.query)
+        position_m = position.scale_m_per_unit * raw + position.offset_m
+        self.readback_a = abs(supply.query_number(commands["measure_current"]))
+        self._check_error_queues()
+        if supply.query_flag(commands["tripped"]):
+            self.trips += 1
+            raise HardwareError(f"{supply.name}: over-current protection tripped "
+                                f"(protection at {self.config.supply.protection_a:g} A)")
+        time_s = (now - self._t0) * self.time_scale
+        velocity = 0.0
+        if self._last_read is not None and time_s > self._last_read[0]:
+            velocity = (position_m - self._last_read[1]) / (time_s - self._last_read[0])
+            for wire in WIRES:
+                flowing = self.readback_a if wire == self.relay else 0.0
+                self._budgets[wire].add(flowing, (time_s - self._last_read[0]) / self.time_scale)
+        self._last_read = (time_s, position_m)
+        applied = self.readback_a if self.relay == "wire_a" else -self.readback_a if self.relay == "wire_b" else 0.0
+        return Reading(time_s, {**wire_commands(applied), STAGE_POSITION: position_m, STAGE_VELOCITY: velocity})
+
+    def _check_error_queues(self) -> None:
+        for instrument in self.instruments.values():
+            errors = instrument.errors()
+            if errors:
+                self.errors_seen.extend(f"{instrument.name}: {entry}" for entry in errors)
+                del self.errors_seen[:-10]
+                raise HardwareError(f"{instrument.name} reports an error: {errors[0]}"
+                                    + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""))
+
+    # -- stopping -------------------------------------------------------------------------------------
+    def stop(self) -> None:
+        """Zero current, output off, relay open (each tried even if one fails; a lost connection is opened
+        again once to do it), then confirm all three by reading back; HardwareError naming what is not."""
+        problems = self._try_switch_off()
+        if problems and any("cannot send" in p or "not connected" in p for p in problems):
+            problems = self._reconnect_and_switch_off()
+        if not problems:
+            problems = self._unconfirmed()
+        if problems:
+            raise HardwareError("could not confirm the output off: " + "; ".join(problems))
+
+    def _try_switch_off(self) -> list[str]:
+        problems = []
+        supply_commands = self.config.supply.commands
+        self.set_current_a = None  # send the zero whatever was sent before
+        steps = (lambda: self._send_current(0.0),
+                 lambda: self._supply().write(supply_commands["output_off"]),
+                 lambda: self._move_relay("open"))
+        for step in steps:
+            try:
+                step()
+            except HardwareError as error:
+                problems.append(str(error))
+        self.output_on = False
+        return problems
+
+    def _reconnect_and_switch_off(self) -> list[str]:
+        self.close()
+        try:
+            for name, config in self.config.instruments.items():
+                self.instruments[name] = ScpiInstrument(config, self._open(config))
+        except HardwareError as error:
+            self.close()
+            return [str(error)]
+        return self._try_switch_off() or self._unconfirmed()
+
+    def _unconfirmed(self) -> list[str]:
+        supply, commands = self._supply(), self.config.supply.commands
+        problems = []
+        try:
+            if supply.query_flag(commands["output_state"]):
+                problems.append(f"{supply.name}: output still on")
+            current = abs(supply.query_number(commands["measure_current"]))
+            if current > self.config.limits.zero_current_a:
+                problems.append(f"{supply.name}: {current:g} A still flowing")
+            relay = self._instrument(self.config.relay.instrument)
+            closed = [wire for wire, query in self.config.relay.state_queries.items() if relay.query_flag(query)]
+            if closed:
+                problems.append(f"{relay.name}: relay still on {', '.join(closed)}")
+        except HardwareError as error:
+            problems.append(str(error))
+        return problems
+
+    def status(self) -> dict[str, object]:
+        values: dict[str, object] = {f"{name}_identity": identity for name, identity in self.identity.items()}
+        values.update({
+            "connected": self.connected,
+            "output_on": self.output_on,
+            "relay": self.relay,
+            "set_current_a": self.set_current_a if self.set_current_a is not None else "unknown",
+            "readback_current_a": self.readback_a,
+            "protection_trips": self.trips,
+            "instrument_errors": " | ".join(self.errors_seen) or "none",
+        })
+        for wire in WIRES:
+            values[f"{wire}_i2t_a2s"] = round(self._budgets[wire].heat_a2s, 6)
+            values[f"{wire}_i2t_limited"] = self.limited[wire]
+        return values
+
+
+__all__ = ["BridgeConfig", "HardwareError", "I2tBudget", "Limits", "ScpiInstrument", "VisaStage",
+           "WIRE_A_CURRENT", "WIRE_B_CURRENT", "bridge_config", "load_bridge_config", "open_with_pyvisa"]
