@@ -227,13 +227,13 @@ def _command_list(data: dict, key: str, where: str) -> tuple[str, ...]:
 def _check_template(text: str, where: str) -> None:
     try:
         names = {name for _, name, _, _ in Formatter().parse(text) if name is not None}
+        unknown = names - TEMPLATE_FIELDS
+        if unknown:
+            raise InputError(f"{where}: unknown field {sorted(unknown)[0]!r} in {text!r} "
+                             f"(known: {', '.join(sorted(TEMPLATE_FIELDS))})")
         text.format(current_a=0.0, voltage_v=0.0, protection_a=0.0)
     except (ValueError, IndexError, KeyError) as error:
         raise InputError(f"{where}: bad command template {text!r}: {error}") from None
-    unknown = names - TEMPLATE_FIELDS
-    if unknown:
-        raise InputError(f"{where}: unknown field {sorted(unknown)[0]!r} in {text!r} "
-                         f"(known: {', '.join(sorted(TEMPLATE_FIELDS))})")
 
 
 def _finite(data: dict, key: str, where: str, nonzero: bool = False) -> float:
