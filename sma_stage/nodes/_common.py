@@ -120,11 +120,12 @@ def _reason(error: ParameterException) -> str:
 
 def quiet_on_shutdown(node: Node, callback: Callable[[], None]) -> Callable[[], None]:
     """A timer callback that ends quietly when Ctrl-C/SIGTERM shut the node's context down under it (a publish
-    then raises, and the executor logged it as FATAL); any other exception goes on."""
+    then raises, or the KeyboardInterrupt lands in the callback's I/O, and the executor logged it as FATAL);
+    any other exception goes on."""
     def run() -> None:
         try:
             callback()
-        except Exception:
+        except (Exception, KeyboardInterrupt):
             if node.context.ok():
                 raise
 

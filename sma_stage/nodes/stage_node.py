@@ -169,7 +169,8 @@ class StageNode(LifecycleNode):
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.lifecycle = "unconfigured"
         self.identity: dict[str, str] = {}
-        self.fault: str | None = None
+        self.fault: str | None = None  # the fault that stands (cleared by a successful configure)
+        self.last_fault = "none"
         self.command_a = 0.0
         self.applied_a = 0.0
         self.last_command: Time | None = None
@@ -227,7 +228,7 @@ class StageNode(LifecycleNode):
         try:
             self.identity = self.hardware.connect()
         except HardwareError as error:
-            self.fault = str(error)
+            self.fault = self.last_fault = str(error)
             self.get_logger().error(f"configure failed, output off: {error}")
             return TransitionCallbackReturn.FAILURE
         self.fault = None
@@ -252,12 +253,13 @@ class StageNode(LifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Zero the current, output off, relay open, confirmed by reading back."""
-        self.lifecycle = "inactive"
+        self.lifecycle = "deactivating"
         self.command_a = self.applied_a = 0.0
-        if not self._stop_hardware():
+        if not self._stop_hardware() or self.fault:
             return TransitionCallbackReturn.ERROR
+        self.lifecycle = "inactive"
         self.get_logger().info("inactive: current zero, output off (confirmed)")
-        return TransitionCallbackReturn.ERROR if self.fault else super().on_deactivate(state)
+        return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Disconnect."""
@@ -298,7 +300,7 @@ class StageNode(LifecycleNode):
 
     def on_fault(self, reason: str) -> None:
         """A hardware fault in a cycle: output off, to unconfigured (through error processing), reconnect."""
-        self.fault, self.faults = reason, self.faults + 1
+        self.fault, self.last_fault, self.faults = reason, reason, self.faults + 1
         self.get_logger().error(f"hardware fault: {reason}; switching the output off")
         if self.lifecycle == "active":
             self.trigger_deactivate()  # on_deactivate returns ERROR while a fault stands: on to on_error
@@ -384,7 +386,8 @@ class StageNode(LifecycleNode):
         start_ns = self.steady.now().nanoseconds
         self.timing.started(start_ns)
         current_a = self.current_to_apply()
-        if self.watchdog_tripped and self.backend != "sim" and self.lifecycle == "active":
+        if self.watchdog_tripped and self.last_command is not None and self.backend != "sim" \
+                and self.lifecycle == "active":
             self.get_logger().warning("deactivating: no current command within command_timeout")
             self.trigger_deactivate()
             return
@@ -466,7 +469,7 @@ class StageNode(LifecycleNode):
             "stopped": self.stopped,
             "watchdog_tripped": self.watchdog_tripped,
             "faults": self.faults,
-            "last_fault": self.fault or "none",
+            "last_fault": self.last_fault,
             "published_steps": self.published_steps,
             **self.timing.values(),
         }

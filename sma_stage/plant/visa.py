@@ -297,20 +297,27 @@ class ScpiInstrument:
         self.name = config.name
         self._resource = resource
         self._errors = _visa_errors()
+        # False while a command is under way, and after one that did not end cleanly (a timeout, a lost
+        # connection, Ctrl-C in the middle of a send): a late reply or half a command may be on the line.
+        self.in_sync = True
 
     def write(self, command: str) -> None:
         """Send a command."""
+        self.in_sync = False
         try:
             self._resource.write(command)
         except self._errors as error:
             raise HardwareError(f"{self.name}: cannot send {command!r}: {_describe(error)}") from None
+        self.in_sync = True
 
     def query(self, command: str) -> str:
         """Send a query and return the stripped reply."""
+        self.in_sync = False
         try:
             reply = self._resource.query(command)
         except self._errors as error:
             raise HardwareError(f"{self.name}: no reply to {command!r}: {_describe(error)}") from None
+        self.in_sync = True
         return str(reply).strip()
 
     def query_number(self, command: str) -> float:
@@ -559,15 +566,41 @@ class VisaStage(StageHardware):
 
     # -- stopping -------------------------------------------------------------------------------------
     def stop(self) -> None:
-        """Zero current, output off, relay open (each tried even if one fails; a lost connection is opened
-        again once to do it), then confirm all three by reading back; HardwareError naming what is not."""
-        problems = self._try_switch_off()
-        if problems and any("cannot send" in p or "not connected" in p for p in problems):
-            problems = self._reconnect_and_switch_off()
+        """Zero current, output off, relay open (each tried even if one fails; a connection that is lost or
+        out of step is opened again first), then confirm all three by reading back; HardwareError naming what
+        is not."""
+        problems = self._reopen_out_of_step()
+        if not problems:
+            problems = self._try_switch_off()
+            if problems and any("cannot send" in p or "not connected" in p for p in problems):
+                problems = self._reopen_all() or self._try_switch_off()
         if not problems:
             problems = self._unconfirmed()
         if problems:
             raise HardwareError("could not confirm the output off: " + "; ".join(problems))
+
+    def _reopen_out_of_step(self) -> list[str]:
+        """Open again each instrument whose last command did not end cleanly (or all, when none is open)."""
+        if not self.instruments:
+            return self._reopen_all()
+        for name, instrument in list(self.instruments.items()):
+            if not instrument.in_sync:
+                instrument.close()
+                try:
+                    self.instruments[name] = ScpiInstrument(instrument.config, self._open(instrument.config))
+                except HardwareError as error:
+                    return [str(error)]
+        return []
+
+    def _reopen_all(self) -> list[str]:
+        self.close()
+        try:
+            for name, config in self.config.instruments.items():
+                self.instruments[name] = ScpiInstrument(config, self._open(config))
+        except HardwareError as error:
+            self.close()
+            return [str(error)]
+        return []
 
     def _try_switch_off(self) -> list[str]:
         problems = []
@@ -583,16 +616,6 @@ class VisaStage(StageHardware):
                 problems.append(str(error))
         self.output_on = False
         return problems
-
-    def _reconnect_and_switch_off(self) -> list[str]:
-        self.close()
-        try:
-            for name, config in self.config.instruments.items():
-                self.instruments[name] = ScpiInstrument(config, self._open(config))
-        except HardwareError as error:
-            self.close()
-            return [str(error)]
-        return self._try_switch_off() or self._unconfirmed()
 
     def _unconfirmed(self) -> list[str]:
         supply, commands = self._supply(), self.config.supply.commands
