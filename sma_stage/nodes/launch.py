@@ -249,6 +249,18 @@ class RosClient:
         response = self.call(Trigger, name, Trigger.Request(), timeout_s)
         return bool(response.success), str(response.message)
 
+    def lifecycle(self, node_name: str, transition: str | None = None, timeout_s: float = 10.0) -> str:
+        """The lifecycle state of a managed node (e.g. 'inactive'), after the transition given by its label
+        ('configure', 'activate', 'deactivate', 'cleanup', 'shutdown'); InputError when the node refuses it."""
+        from lifecycle_msgs.srv import ChangeState, GetState
+
+        if transition is not None:
+            request = ChangeState.Request()
+            request.transition.label = transition
+            if not self.call(ChangeState, f"{node_name}/change_state", request, timeout_s).success:
+                raise InputError(f"{node_name} refused the lifecycle transition {transition!r}")
+        return str(self.call(GetState, f"{node_name}/get_state", GetState.Request(), timeout_s).current_state.label)
+
     def latest(self, message_type: object, topic: str, qos: object, timeout_s: float = 5.0) -> Any:
         """The latest message on a transient-local topic (e.g. identification/report), waited for up to
         timeout_s; TimeoutError when none came."""

@@ -378,26 +378,32 @@ class StageNode(LifecycleNode):
         return min(max(elapsed_s, 0.0), MAX_CATCH_UP_STEPS / self.rate_hz) * self.time_scale
 
     def on_tick(self) -> None:
-        """One cycle: apply the current, read the stage, publish current_applied and joint_states (and /clock
-        with use_sim_time); a hardware fault switches the output off. Unconfigured: reconnect when due."""
+        """One cycle, in ros2_control's order: read the stage (the position at the end of the last period and
+        the current applied over it), publish joint_states and current_applied (and /clock with
+        use_sim_time), then write the current for the next period. A hardware fault switches the output off.
+        Unconfigured: reconnect when due."""
         if self.lifecycle not in ("active", "inactive"):
             self._reconnect_when_due()
             return
         start_ns = self.steady.now().nanoseconds
         self.timing.started(start_ns)
-        current_a = self.current_to_apply()
-        if self.watchdog_tripped and self.last_command is not None and self.backend != "sim" \
-                and self.lifecycle == "active":
-            self.get_logger().warning("deactivating: no current command within command_timeout")
-            self.trigger_deactivate()
-            return
         try:
-            self.hardware.write(wire_commands(current_a))
             self.reading = self.hardware.read(self.step_length_s())
+            self.publish_reading()
+            current_a = self.current_to_apply()
+            if self.watchdog_tripped and self.last_command is not None and self.backend != "sim" \
+                    and self.lifecycle == "active":
+                self.get_logger().warning("deactivating: no current command within command_timeout")
+                self.trigger_deactivate()
+                return
+            self.hardware.write(wire_commands(current_a))
         except HardwareError as error:
             self.on_fault(str(error))
             return
         self.timing.ended((self.steady.now().nanoseconds - start_ns) * 1e-9)
+
+    def publish_reading(self) -> None:
+        """Publish the last reading: /clock (with use_sim_time), current_applied, joint_states."""
         self.applied_a = self.reading.current_a
         stamp = self.stamp()
         if self.clock_pub is not None:

@@ -3,7 +3,8 @@
 Named like ros2_control's hardware interfaces: the command interfaces are the two wires' currents
 (`wire_a/current`, `wire_b/current` [A], at most one of them non-zero: the relay routes the current to one
 wire), the state interfaces add the stage position (`stage/position` [m]) and velocity (`stage/velocity`
-[m/s]). A cycle is `write(commands)` then `read(period_s)`.
+[m/s]). A cycle is ros2_control's: `read(period_s)` (the state at the end of the period and the current
+applied over it), then `write(commands)` (the current for the next period).
 """
 
 from __future__ import annotations

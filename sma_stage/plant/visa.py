@@ -510,12 +510,13 @@ class VisaStage(StageHardware):
         wanted = "wire_a" if current_a > 0.0 else "wire_b" if current_a < 0.0 else None
         if wanted is None:
             self._send_current(0.0)
-        elif wanted != self.relay:
-            self._break_before_make(wanted)
-        elif self._clock() - self._relay_moved_at < self.config.relay.settle_s:
-            self._send_current(0.0)
         else:
-            self._send_current(self._limited(wanted, abs(current_a)))
+            if wanted != self.relay:
+                self._break_before_make(wanted)
+            if wanted != self.relay or self._clock() - self._relay_moved_at < self.config.relay.settle_s:
+                self._send_current(0.0)
+            else:
+                self._send_current(self._limited(wanted, abs(current_a)))
 
     def _break_before_make(self, wanted: str) -> None:
         """Toward moving the relay: zero the current; move only once it has been zero (commanded for
