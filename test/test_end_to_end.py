@@ -11,11 +11,14 @@ import time
 
 import numpy as np
 import pytest
+import yaml
 
 pytest.importorskip("rclpy")
 
+from scpi_server import LoopbackRig  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
+from test_hardware import rig_config  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.model import IdentifiedModel, load_model_file  # noqa: E402
@@ -59,9 +62,9 @@ def first_command_bounds(model: IdentifiedModel, target_m: float, model_time_s: 
     return min(commands), max(commands)
 
 
-def start_system(nodes: NodeProcesses, model_file) -> None:
+def start_system(nodes: NodeProcesses, model_file, stage_backend: dict | None = None) -> None:
     nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0,
-                                "use_sim_time": True}, [CONFIG_DIR / "stage.yaml"])
+                                "use_sim_time": True, **(stage_backend or {})}, [CONFIG_DIR / "stage.yaml"])
     nodes.start("compensator_node", {"rate_hz": 1.0, "use_sim_time": True, "feedback": False,
                                           "feedforward_lead_limit": 1.0},
                 [CONFIG_DIR / "compensator.yaml"])
@@ -91,11 +94,29 @@ def refit_after_excitation(client: RosClient, check) -> dict:
     return json.loads(client.latest(String, "identification/report", REPORT_QOS).data)
 
 
-def test_executables_excite_refit_push_and_track(tmp_path):
+@pytest.fixture(params=["sim", "visa"])
+def stage_backend(request, tmp_path):
+    """The stage node's backend parameters: the simulator, or the bridge on the loopback SCPI rig running the
+    same simulator at TIME_SCALE (the example's relay settle times scaled to the rig's time)."""
+    if request.param == "sim":
+        yield {}
+        return
+    with LoopbackRig(time_scale=TIME_SCALE) as rig:
+        data = rig_config(rig)
+        data["supply"]["protection_a"] = 5.5
+        data["limits"].update(max_current_a={"wire_a": 5.0, "wire_b": 5.0}, i2t_budget_a2s=1e6,
+                              zero_settle_s=data["limits"]["zero_settle_s"] / TIME_SCALE)
+        data["relay"]["settle_s"] /= TIME_SCALE
+        (tmp_path / "hardware.yaml").write_text(yaml.safe_dump(data))
+        yield {"backend": "visa", "hardware_file": str(tmp_path / "hardware.yaml"), "autostart": "active"}
+        assert rig.conflicts == 0, "a relay closed while the other carried current"
+
+
+def test_executables_excite_refit_push_and_track(tmp_path, stage_backend):
     model_file = tmp_path / "fitted.yaml"
     domain = int(os.environ["ROS_DOMAIN_ID"])
     with NodeProcesses(tmp_path / "nodes", domain) as nodes:
-        start_system(nodes, model_file)
+        start_system(nodes, model_file, stage_backend)
         assert {p.name for p in nodes.processes} == {"stage_node", "compensator_node", "identification_node"}
         with RosClient(domain, "e2e_test") as client:
             seen = Recorder(client.node)
@@ -116,6 +137,9 @@ def test_executables_excite_refit_push_and_track(tmp_path):
             assert stroke[1] - stroke[0] > 2e-4, f"the excitation moved the stage: {stroke}"
             start = float(np.mean(seen.positions[-10:]))
             target = start + (0.3 if start < np.mean(stroke) else -0.3) * (stroke[1] - stroke[0])
+            if client.lifecycle("stage") == "inactive":
+                assert stage_backend, "only on instruments does the watchdog deactivate the stage"
+                assert client.lifecycle("stage", "activate") == "active"
             setpoint = client.node.create_publisher(Float64, "setpoint", COMMAND_QOS)
             wait_for(lambda: client.node.count_subscribers("setpoint") >= 1, 10.0, "the compensator")
             wait_for(lambda: seen.stamps_s[-1] > pushed_s + COOLED_S, 30.0, "the lag to cool", nodes.check_running)
