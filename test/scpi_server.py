@@ -200,7 +200,8 @@ class LoopbackRig:
             if fault == "drop":
                 return None, 0.0, True
             self._advance()
-            if fault == "refuse" and not command.strip().endswith("?"):
+            is_query = "?" in (command.split() or [""])[0]
+            if fault == "refuse" and not is_query:
                 self._errors[instrument].append('-222,"Data out of range"')
                 return None, 0.0, False
             if fault == "refuse":

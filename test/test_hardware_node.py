@@ -98,7 +98,15 @@ def test_the_bridge_waits_inactive_and_runs_through_the_lifecycle_services(rig, 
     assert lifecycle_label(ros, probe) == "unconfigured" and not stage.hardware.connected
 
 
-def test_a_fault_while_active_switches_off_and_a_reconnect_never_switches_on(rig, ros, tmp_path):
+NODE_FAULTS = [("meter", "drop", "meter: no reply to '"), ("meter", "garbage", "meter: reply to '"),
+               ("meter", "late", "meter: no reply to '"),
+               ("supply", "refuse", 'supply reports an error: -222,"Data out of range"'),
+               ("supply", "trip", "supply: over-current protection tripped")]
+
+
+@pytest.mark.parametrize(("instrument", "kind", "message"), NODE_FAULTS)
+def test_a_fault_while_active_switches_off_and_a_reconnect_never_switches_on(rig, ros, tmp_path, instrument, kind,
+                                                                             message):
     stage = bridge_node(ros, rig, tmp_path, autostart="active")
     probe = ros.probe()
     diagnostics = Listener(probe, DiagnosticArray, "/diagnostics")
@@ -106,8 +114,9 @@ def test_a_fault_while_active_switches_off_and_a_reconnect_never_switches_on(rig
     wait_until(lambda: stage.count_publishers("current_cmd") >= 1, 5.0, "the command publisher")
     send(1.5)
     wait_until(lambda: rig.heating_current_a() == 1.5, 5.0, "1.5 A flowing")
-    rig.inject("meter", "garbage")
+    rig.inject(instrument, kind, delay_s=0.4)
     faulted = time.monotonic()
+    send(1.0)  # a new current: the supply gets a command (the refused one)
     wait_until(lambda: output_off(rig), 2.0, "the output off after the fault")
     assert time.monotonic() - faulted < 0.02 + 0.2 + 0.5, "one cycle plus the timeout (and scheduling)"
     wait_until(lambda: stage.lifecycle == "inactive", 10.0, "the reconnect (back-off 1 s)")
@@ -116,12 +125,10 @@ def test_a_fault_while_active_switches_off_and_a_reconnect_never_switches_on(rig
     assert output_off(rig), "reconnected but not activated: the output stays off"
     switched_on_after = [e for e in rig.events if e.time_s > faulted and e.kind == "output" and e.detail.endswith("ON")]
     assert switched_on_after == []
-    # the garbage answers whichever meter query comes next: READ? or SYST:ERR?; the message quotes it
-    wait_until(lambda: any(pair.key == "last_fault" and "garbage" in pair.value for m in diagnostics.messages
+    wait_until(lambda: any(pair.key == "last_fault" and pair.value.startswith(message) for m in diagnostics.messages
                            for status in m.status for pair in status.values), 5.0, "the fault on /diagnostics")
     values = {pair.key: pair.value for pair in stage.diagnostic_status().values}
-    assert values["faults"] == "1" and values["last_fault"].startswith("meter: reply to '")
-    assert values["lifecycle_state"] == "inactive" and values["output_on"] == "False"
+    assert values["faults"] == "1" and values["lifecycle_state"] == "inactive" and values["output_on"] == "False"
 
 
 def test_the_watchdog_deactivates_the_bridge(rig, ros, tmp_path):
