@@ -138,7 +138,7 @@ def test_a_cycle_reads_position_current_error_queues_and_the_trip_and_scales_the
     stage.connect()
     log.clear()
     reading = stage.read(0.01)
-    assert log == [("meter", "READ?"), ("supply", ":MEAS:CURR? CH1"), ("supply", "SYST:ERR?"),
+    assert log == [("meter", "READ?"), ("supply", ":MEAS:CURR? CH1"), ("supply", ":MEAS:VOLT? CH1"), ("supply", "SYST:ERR?"),
                    ("meter", "SYST:ERR?"), ("supply", ":OUTP:OCP:QUES? CH1")]
     assert reading.position_m == pytest.approx(2e-4 * 7.5 - 1e-3)
 

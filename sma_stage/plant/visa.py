@@ -417,6 +417,7 @@ class VisaStage(StageHardware):
         self.output_on = False
         self.set_current_a = None  # the value last sent to the supply [A]; None: unknown
         self.readback_a = 0.0
+        self.readback_v = 0.0
         self._zero_since: float | None = None
         self._relay_moved_at = -math.inf
         self._t0 = self._clock()
@@ -540,6 +541,7 @@ class VisaStage(StageHardware):
         raw = self._instrument(position.instrument).query_number(position.query)
         position_m = position.scale_m_per_unit * raw + position.offset_m
         self.readback_a = abs(supply.query_number(commands["measure_current"]))
+        self.readback_v = supply.query_number(commands["measure_voltage"])
         self._check_error_queues()
         if supply.query_flag(commands["tripped"]):
             self.trips += 1
@@ -643,6 +645,9 @@ class VisaStage(StageHardware):
             "relay": self.relay,
             "set_current_a": self.set_current_a if self.set_current_a is not None else "unknown",
             "readback_current_a": self.readback_a,
+            "readback_voltage_v": self.readback_v,
+            # the heated wire's resistance with its leads: a broken wire reads the compliance voltage and no current
+            "wire_resistance_ohm": round(self.readback_v / self.readback_a, 4) if self.readback_a > 0.05 else "n/a",
             "protection_trips": self.trips,
             "instrument_errors": " | ".join(self.errors_seen) or "none",
         })
