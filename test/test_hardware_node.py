@@ -177,3 +177,36 @@ def test_ctrl_c_switches_the_output_off(rig, tmp_path):
         context.try_shutdown()
     assert process.returncode == 0, rest
     assert output_off(rig) and "output off (confirmed)" in rest and "Traceback" not in rest, rest
+
+
+def test_the_simulator_goes_through_the_same_states(ros):
+    stage = ros.add(StageNode(context=ros.context, parameter_overrides=[
+        Parameter("autostart", value="unconfigured"), Parameter("rate_hz", value=100.0),
+        Parameter("command_timeout", value=5.0)]))
+    probe = ros.probe()
+    assert lifecycle_label(ros, probe) == "unconfigured" and stage.published_steps == 0
+    assert change_state(ros, probe, Transition.TRANSITION_CONFIGURE)
+    wait_until(lambda: stage.published_steps > 5, 5.0, "joint_states while inactive")
+    send = sender(probe)
+    wait_until(lambda: stage.count_publishers("current_cmd") >= 1, 5.0, "the command publisher")
+    send(1.0)
+    time.sleep(0.1)
+    assert stage.applied_a == 0.0, "inactive: commands ignored"
+    assert change_state(ros, probe, Transition.TRANSITION_ACTIVATE)
+    send(1.0)
+    wait_until(lambda: stage.applied_a == 1.0, 5.0, "the current applied once active")
+    assert change_state(ros, probe, Transition.TRANSITION_DEACTIVATE)
+    wait_until(lambda: stage.applied_a == 0.0, 5.0, "zero current once inactive")
+    assert change_state(ros, probe, Transition.TRANSITION_CLEANUP)
+    assert lifecycle_label(ros, probe) == "unconfigured"
+
+
+def test_reconnect_attempts_back_off_while_the_instruments_are_gone(rig, ros, tmp_path):
+    stage = bridge_node(ros, rig, tmp_path, reconnect_max_interval=2.0)
+    wait_until(lambda: stage.published_steps > 3, 5.0, "cycles while inactive")
+    rig.stop()
+    wait_until(lambda: stage.lifecycle == "unconfigured" and stage._reconnect_s == 2.0, 8.0,
+               "a failed attempt after 1 s, and the next interval doubled to the cap of 2 s")
+    time.sleep(2.5)
+    assert stage.lifecycle == "unconfigured" and stage._reconnect_s == 2.0, "capped, still trying, nothing on"
+    assert stage.faults == 1 and "Connection refused" in stage.last_fault, stage.last_fault
