@@ -118,7 +118,11 @@ def test_a_fault_while_active_switches_off_and_a_reconnect_never_switches_on(rig
     faulted = time.monotonic()
     send(1.0)  # a new current: the supply gets a command (the refused one)
     wait_until(lambda: output_off(rig), 2.0, "the output off after the fault")
-    assert time.monotonic() - faulted < 0.02 + 0.2 + 0.5, "one cycle plus the timeout (and scheduling)"
+    off_s = min(e.time_s for e in rig.events if e.time_s > faulted and e.detail.startswith("CH1 OFF")) - faulted
+    print(f"fault {kind}: output off {off_s * 1e3:.1f} ms after the fault was set")
+    # one cycle (20 ms: the fault meets the next cycle's command) plus the timeout (200 ms), and 30 ms for
+    # scheduling on a loaded machine (measured: at most 224 ms with two CPU-bound processes alongside)
+    assert off_s < 0.02 + 0.2 + 0.03, "one cycle plus the timeout"
     wait_until(lambda: stage.lifecycle == "inactive", 10.0, "the reconnect (back-off 1 s)")
     send(1.5)
     time.sleep(0.3)

@@ -583,11 +583,14 @@ class VisaStage(StageHardware):
             raise HardwareError("could not confirm the output off: " + "; ".join(problems))
 
     def _reopen_out_of_step(self) -> list[str]:
-        """Open again each instrument whose last command did not end cleanly (or all, when none is open)."""
+        """Open again the supply and the relay's instrument if their last command did not end cleanly (all, when
+        none is open); an out-of-step position reader is left for the next connect, so the output goes off
+        without waiting for it."""
         if not self.instruments:
             return self._reopen_all()
+        needed = {self.config.supply.instrument, self.config.relay.instrument}
         for name, instrument in list(self.instruments.items()):
-            if not instrument.in_sync:
+            if name in needed and not instrument.in_sync:
                 instrument.close()
                 try:
                     self.instruments[name] = ScpiInstrument(instrument.config, self._open(instrument.config))
