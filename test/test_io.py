@@ -5,6 +5,7 @@ import shutil
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -507,6 +508,26 @@ def test_an_atomic_write_that_fails_names_the_file_not_its_temporary(tmp_path):
         atomic_write_text(target, "x")
     assert failed.value.filename == str(target) and ".tmp" not in str(failed.value)
     assert [path.name for path in tmp_path.iterdir()] == ["model.yaml"], "no temporary file left"
+
+
+def test_a_write_sweeps_the_temporaries_killed_writes_left_and_keeps_a_running_writers(tmp_path):
+    from sma_stage.io.atomic import STALE_TEMPORARY_S, atomic_write_text
+
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(ended.stdout)
+    target = tmp_path / "model.yaml"
+    old = time.time() - 2 * STALE_TEMPORARY_S
+    leftover = tmp_path / f".model.yaml.{dead_pid}.abc123.tmp"
+    fresh = tmp_path / f".model.yaml.{dead_pid}.def456.tmp"  # too new: could be a write just begun
+    running = tmp_path / f".model.yaml.{os.getpid()}.ghi789.tmp"  # a live writer's
+    other = tmp_path / f".other.yaml.{dead_pid}.jkl012.tmp"  # another file's
+    for path in (leftover, fresh, running, other):
+        path.write_text("half")
+    for path in (leftover, running, other):
+        os.utime(path, (old, old))
+    atomic_write_text(target, "new")
+    assert target.read_text() == "new"
+    assert not leftover.exists() and fresh.exists() and running.exists() and other.exists()
 
 
 def test_a_huge_bad_cell_is_quoted_short_and_1_0_is_not_ten(tmp_path):

@@ -3,6 +3,7 @@
 import os
 import stat
 import tempfile
+import time
 from pathlib import Path
 
 
@@ -28,13 +29,45 @@ def _mode_for(target: Path) -> int:
         return 0o666 & ~_umask()
 
 
+def _alive(pid: int) -> bool:
+    """True when a process of this pid runs on this machine (or may: one of another user)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+STALE_TEMPORARY_S = 10.0  # a temporary this old, of a writer that no longer runs, is a killed write's leftover
+
+
+def sweep_stale_temporaries(target: Path) -> list[Path]:
+    """Remove the hidden temporaries that earlier writes of target left when killed (`.<name>.<pid>.*.tmp` of a
+    process that no longer runs, at least STALE_TEMPORARY_S old); the paths removed."""
+    removed = []
+    for candidate in target.parent.glob(f".{target.name}.*.tmp"):
+        pid = candidate.name[len(target.name) + 2:].split(".", 1)[0]
+        try:
+            stale = not _alive(int(pid)) and time.time() - candidate.stat().st_mtime >= STALE_TEMPORARY_S
+        except (ValueError, OSError):
+            continue
+        if stale:
+            candidate.unlink(missing_ok=True)
+            removed.append(candidate)
+    return removed
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write data to path through a temporary file in the same folder and an atomic rename; an OSError names
-    path, never the temporary file."""
+    path, never the temporary file. Temporaries that killed writes of path left behind are removed."""
     target = Path(path)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+        sweep_stale_temporaries(target)
+        handle, temporary = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.{os.getpid()}.",
+                                             suffix=".tmp")
     except OSError as error:
         raise OSError(error.errno, error.strerror, str(target)) from None
     try:
