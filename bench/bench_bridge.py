@@ -42,18 +42,10 @@ LATE_FACTOR = 1.5
 
 
 def hardware_yaml(rig: LoopbackRig, folder: Path) -> Path:
-    """The shipped example pointed at the rig, with the simulated stage's 5 A range allowed. The rig runs
-    time_scale times faster than the wall clock: the example's relay and zero-current settle times are divided
-    by it, so that the stage sees the dead times a real relay gives at a sign change."""
-    data = yaml.safe_load((CONFIG_DIR / "hardware_example.yaml").read_text())
-    for name in ("supply", "meter"):
-        data["instruments"][name]["resource"] = rig.resource(name)
-    data["relay"]["settle_s"] /= rig.time_scale
-    data["limits"]["zero_settle_s"] /= rig.time_scale
-    data["supply"]["protection_a"] = 5.5
-    data["limits"].update(max_current_a={"wire_a": 5.0, "wire_b": 5.0}, i2t_budget_a2s=1e6)
+    """The shipped example as the rig's simulator equivalent (LoopbackRig.simulator_equivalent), as a file."""
     path = folder / "hardware.yaml"
-    path.write_text(yaml.safe_dump(data))
+    path.write_text(yaml.safe_dump(rig.simulator_equivalent(
+        yaml.safe_load((CONFIG_DIR / "hardware_example.yaml").read_text()))))
     return path
 
 

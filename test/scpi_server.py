@@ -14,6 +14,7 @@ Run alone for a first check of a real set-up's YAML against it: `python test/scp
 from __future__ import annotations
 
 import argparse
+import copy
 import re
 import socket
 import socketserver
@@ -227,6 +228,18 @@ class LoopbackRig:
     def resource(self, instrument: str) -> str:
         """The VISA resource string of an instrument (pyvisa-py raw socket)."""
         return f"TCPIP0::127.0.0.1::{self.ports[instrument]}::SOCKET"
+
+    def simulator_equivalent(self, hardware: dict) -> dict:
+        """A hardware YAML mapping pointed at this rig, allowing the simulated stage's 5 A range, with its relay
+        and zero-current settle times divided by time_scale (the stage then sees a real relay's dead times)."""
+        data = copy.deepcopy(hardware)
+        for name in ("supply", "meter"):
+            data["instruments"][name]["resource"] = self.resource(name)
+        data["supply"]["protection_a"] = 5.5
+        data["limits"].update(max_current_a={"wire_a": 5.0, "wire_b": 5.0}, i2t_budget_a2s=1e6,
+                              zero_settle_s=data["limits"]["zero_settle_s"] / self.time_scale)
+        data["relay"]["settle_s"] /= self.time_scale
+        return data
 
     def stop(self) -> None:
         """Stop listening and close every connection."""

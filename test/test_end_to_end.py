@@ -18,7 +18,6 @@ pytest.importorskip("rclpy")
 from scpi_server import LoopbackRig  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
-from test_hardware import rig_config  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.model import IdentifiedModel, load_model_file  # noqa: E402
@@ -102,11 +101,7 @@ def stage_backend(request, tmp_path):
         yield {}
         return
     with LoopbackRig(time_scale=TIME_SCALE) as rig:
-        data = rig_config(rig)
-        data["supply"]["protection_a"] = 5.5
-        data["limits"].update(max_current_a={"wire_a": 5.0, "wire_b": 5.0}, i2t_budget_a2s=1e6,
-                              zero_settle_s=data["limits"]["zero_settle_s"] / TIME_SCALE)
-        data["relay"]["settle_s"] /= TIME_SCALE
+        data = rig.simulator_equivalent(yaml.safe_load((CONFIG_DIR / "hardware_example.yaml").read_text()))
         (tmp_path / "hardware.yaml").write_text(yaml.safe_dump(data))
         # command_timeout longer than the test: on instruments the watchdog deactivates the stage, and whether it
         # fired between the excitation and the setpoint would depend on how long the refit took
