@@ -11,7 +11,10 @@ from synthetic import TRUE_OPERATORS, TRUE_PARAMETERS, make_case
 
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import diagnose
-from sma_stage.identify.effects import EFFECT_NAMES, delayed_input, lagged_input, rate_model_output
+from sma_stage.identify.effects import EFFECT_NAMES
+from sma_stage.identify.effects.delay import delayed_input
+from sma_stage.identify.effects.rate import rate_model_output
+from sma_stage.identify.effects.thermal_lag import lagged_input
 from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.identify.residual_tests import TEST_NAMES, residual_tests
@@ -248,12 +251,12 @@ def test_a_candidate_that_cannot_be_fitted_is_reported_not_fatal(monkeypatch):
 
 
 def test_a_numerical_failure_inside_a_candidate_is_reported_not_fatal(monkeypatch):
-    import sma_stage.identify.effects as effects_module
+    from sma_stage.identify.effects import drift as drift_module
 
     def overflowing(*args, **kwargs):
         raise ValueError("min() arg is an empty sequence")
 
-    monkeypatch.setattr(effects_module.DriftEffect, "fit", overflowing)
+    monkeypatch.setattr(drift_module.DriftEffect, "fit", overflowing)
     case = make_case("none", seed=SEED, duration_s=300.0)
     ident, valid = case.identification, case.validation
     result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), max_rounds=1)
