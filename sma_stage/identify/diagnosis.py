@@ -24,6 +24,7 @@ import numpy as np
 from sma_stage.errors import InputError
 from sma_stage.identify.effects import (
     EFFECT_NAMES,
+    FITTED_STARTS,
     EffectFit,
     NotFitted,
     attempt,
@@ -32,10 +33,11 @@ from sma_stage.identify.effects import (
     no_effect,
     recount_effect,
 )
-from sma_stage.identify.fit import FitResult, fit_gpi, information_criterion, predict
+from sma_stage.identify.fit import FitResult, fit_gpi, information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
-from sma_stage.model.identified import IdentifiedModel
+from sma_stage.identify.start import StartFit, estimate_start
+from sma_stage.model.identified import IdentifiedModel, Start
 
 BIC_MARGIN = 10.0  # "very strong" evidence on the Kass-Raftery scale
 VALIDATION_MARGIN = 0.10  # the validation RMS must fall by at least 10 % in the first round
@@ -48,6 +50,7 @@ POINTERS: dict[str, tuple[str, ...]] = {
     "delay": ("lagged_input", "input_rate"),
     "rate": ("input_rate",),
     "drift": ("time",),
+    "wire_thermal": ("lagged_input", "input_rate"),
 }
 
 Record = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -109,6 +112,7 @@ class Diagnosis:
     validation_predicted_after: np.ndarray = field(repr=False)
     failures: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
+    starts: dict[str, StartFit] = field(default_factory=dict)
 
     @property
     def chosen(self) -> EffectFit:
@@ -125,6 +129,7 @@ class Diagnosis:
             "before": {"validation": _errors(self.before)},
             "after": {"validation": _errors(self.after)},
             "effects": list(self.effects),
+            "starts": {record: found.to_dict(self.chain.model) for record, found in self.starts.items()},
             "candidates": _candidate_list(self.candidates, self.failures),
             "rounds": [found.to_dict() for found in self.rounds],
         }
@@ -205,21 +210,27 @@ class Chain:
         effects = tuple(stage.spec for stage in self.stages[1:])
         return IdentifiedModel(last.gpi_parameters, last.operators, effects)
 
+    @property
+    def start(self) -> str:
+        """How the identification record starts for this model: the first added effect's start (rest or
+        held; later effects are fitted from the same)."""
+        return self.stages[1].start if len(self.stages) > 1 else "rest"
+
     def data(self, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(input, output) as an effect added on top sees them: every stage's input transform applied in
-        turn, every output offset taken off."""
+        turn (from the chain's start), every output offset taken off."""
         v, offset = u, np.zeros_like(t)
         for stage in self.stages[1:]:
             spec = stage.spec
             if spec.role == "input":
-                v = spec.transform(t, v)[0]
+                v = spec.transform(t, v, spec.start_state(t, v, self.start))[0]
             elif spec.role == "output":
                 offset = offset + spec.offset(t)[0]
         return v, y - offset
 
     def predict(self, t: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Output [output unit] of the whole model for a record (t [s], u [A]) from an idle stage."""
-        return self.model.predict(t, u)
+        """Output [output unit] of the whole model for the identification record (t [s], u [A]) from its start."""
+        return self.model.predict_from(t, u, Start(self.start))
 
     def then(self, stage: EffectFit) -> Chain:
         """This model with one more effect."""
@@ -270,13 +281,24 @@ def judge(delta_bic: float, validation: ErrorMetrics, before: ErrorMetrics,
 
 @dataclass(frozen=True)
 class Validation:
-    """The validation record (t [s], u [A], y) and the sample its errors count from: every model runs
-    over all of it from an idle stage; the samples before scored_from only bring its states up."""
+    """The validation record (t [s], u [A], y) and the sample its errors count from. A separate record
+    (scored_from 0) starts as estimate_start finds for each model; a record that continues the
+    identification record (its errors counted from scored_from) runs from the identification's start."""
 
     t: np.ndarray
     u: np.ndarray
     y: np.ndarray
     scored_from: int = 0
+
+    def predict(self, model: IdentifiedModel, identification_start: str) -> StartFit:
+        """The model's output over the record, and the start it runs from."""
+        if self.scored_from > 0:
+            start = Start(identification_start)
+            predicted = model.predict_from(self.t, self.u, start)
+            residual = self.y - predicted
+            cost = float(residual @ residual)
+            return StartFit(start, predicted, cost, information_criterion(cost, self.y.size, 0), {})
+        return estimate_start(model, self.t, self.u, self.y)
 
     def errors(self, predicted: np.ndarray) -> ErrorMetrics:
         """RMS and max error of a prediction over the scored samples [% of their span]."""
@@ -296,7 +318,7 @@ def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Validation, b
     extended = chain.then(fit)
     if len(chain.stages) > 1:
         extended = refine(extended, ident, progress=progress)
-    validation = valid.errors(extended.predict(valid.t, valid.u))
+    validation = valid.errors(valid.predict(extended.model, extended.start).predicted)
     delta_bic = extended.bic - chain.bic
     accepted, reason = judge(delta_bic, validation, before, margin)
     parameters = fit.parameters if len(chain.stages) == 1 else extended.parameters
@@ -322,7 +344,7 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
         _report(progress, f"fitting candidate {name}" + ("" if first else f" on top of {' + '.join(chain.effects)}"))
 
         def judged(name: str = name) -> CandidateResult:
-            fit = fit_effect(name, t_i, v_i, w_i, base, progress)
+            fit = fit_effect(name, t_i, v_i, w_i, base, progress, FITTED_STARTS if first else (chain.start,))
             return _candidate(chain, fit, ident, valid, before, fit.seconds, margin, progress)
 
         outcome = attempt(name, judged)
@@ -367,10 +389,10 @@ def refine(chain: Chain, ident: Record, sweeps: int = REFINE_SWEEPS, progress: P
             last = others.last
 
             def refitted(name: str = name, v_i: np.ndarray = v_i, w_i: np.ndarray = w_i,
-                         last: EffectFit = last) -> EffectFit:
+                         last: EffectFit = last, kind: str = chain.start) -> EffectFit:
                 start = fit_gpi(v_i, w_i, operators=last.operators, initial=last.gpi_parameters,
                                 output_unit=last.gpi_parameters.output_unit)
-                return fit_effect(name, t_i, v_i, w_i, start, progress)
+                return fit_effect(name, t_i, v_i, w_i, start, progress, (kind,))
 
             fit = attempt(name, refitted)
             if isinstance(fit, NotFitted):
@@ -419,7 +441,8 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         _report(progress, "fitting the plain GPI on the identification data")
         base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
     chain = Chain((no_effect(t_i, u_i, y_i, base),), base)
-    predicted_before = predict(base, u_v)
+    start_before = validation.predict(chain.model, chain.start)
+    predicted_before = start_before.predicted
     before = validation.errors(predicted_before)
     tests_before = validation.tests(predicted_before)
     failed = [name for name, check in tests_before.checks.items() if not check.passed]
@@ -427,7 +450,7 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
     rounds, current = [], before
     while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
-        tests = validation.tests(chain.predict(t_v, u_v)) if rounds else tests_before
+        tests = validation.tests(validation.predict(chain.model, chain.start).predicted) if rounds else tests_before
         found = _search_round(chain, ident_record, validation, current, tests, operators is None and not rounds,
                               progress)
         rounds.append(found)
@@ -437,7 +460,8 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
-    predicted_after = chain.predict(t_v, u_v) if chain.effects else predicted_before
+    start_after = validation.predict(chain.model, chain.start) if chain.effects else start_before
+    predicted_after = start_after.predicted
     after = validation.errors(predicted_after) if chain.effects else before
     tests_after = validation.tests(predicted_after) if chain.effects else tests_before
     found_order = [found.winner.effect for found in rounds if found.winner is not None]
@@ -458,6 +482,7 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         validation_predicted_after=predicted_after,
         failures=rounds[0].failures if rounds else {},
         seconds=time.perf_counter() - started,
+        starts={"identification": estimate_start(chain.model, t_i, u_i, y_i), "validation": start_after},
     )
 
 

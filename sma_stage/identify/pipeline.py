@@ -17,7 +17,7 @@ from sma_stage.identify.fit import FitResult, fit_gpi, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
 from sma_stage.io.series import Series
-from sma_stage.model.identified import IdentifiedModel
+from sma_stage.model.identified import IdentifiedModel, Start
 
 Progress = Callable[[str], None] | None
 
@@ -46,7 +46,8 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     (`holdout_fraction`: the head is fitted, every model runs over the whole record and the errors count
     on the tail), or none. With diagnose_rounds > 0 (and validation data) the residual is diagnosed and
     the model deployed is the GPI with every effect it added; should the diagnosis fail, the plain fit is
-    deployed and `warnings` says why in one line. The model's state is where it leaves the record.
+    deployed and `warnings` says why in one line. The model's state is where it leaves the record, run from
+    the start the diagnosis found for it (from rest without a diagnosis).
     """
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
@@ -65,7 +66,8 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
                             f"{' '.join(str(error).split())}")
     model = found.chain.model if found is not None else IdentifiedModel(fit.parameters, fit.operators)
     continued = record if holdout_fraction is not None else ident
-    _, end_state = model.run(continued.t, continued.input)
+    start = found.starts["identification"].start if found is not None else Start("rest")
+    _, end_state = model.run(continued.t, continued.input, model.start_state(continued.t, continued.input, start))
     metadata = {"source": source or record.source, "samples": len(continued)}
     model = replace(model, state=end_state, metadata=metadata)
     if found is not None:

@@ -25,7 +25,8 @@ import numpy as np
 
 from sma_stage.errors import InputError
 
-EFFECT_KINDS = ("thermal_lag", "delay", "rate", "drift")
+EFFECT_KINDS = ("thermal_lag", "delay", "rate", "drift", "wire_thermal")
+START_KINDS = ("rest", "held", "free")
 
 
 @numba.njit(cache=True, nogil=True)
@@ -133,6 +134,10 @@ class Effect:
             raise InputError("effect drift: creep_m and creep_tau_s go together")
         if self.kind == "drift" and values.get("creep_tau_s", 1.0) <= 0.0:
             raise InputError("effect drift: creep_tau_s must be above 0")
+        if self.kind == "rate" and not values:
+            raise InputError("effect rate: give rate_gain_s_per_A (multiplicative) or rate_shift_m_s_per_A (additive)")
+        if self.kind == "wire_thermal" and values["joule_reference_a"] <= 0.0:
+            raise InputError("effect wire_thermal: joule_reference_a must be above 0")
         object.__setattr__(self, "parameters", values)
 
     @property
@@ -153,7 +158,61 @@ class Effect:
             return self._lagged(t, u, state)
         if self.kind == "delay":
             return self._delayed(t, u, state)
+        if self.kind == "wire_thermal":
+            return self._wires(t, u, state)
         raise InputError(f"effect {self.kind} does not transform the input")
+
+    def _wires(self, t: np.ndarray, u: np.ndarray, state: EffectState | None) -> tuple[np.ndarray, EffectState]:
+        """The difference of the two wires' temperatures [A of heating], each lagging its own share of the
+        Joule heating (wire a heated by u > 0, wire b by u < 0) with its own time constant."""
+        reference = self.parameters["joule_reference_a"]
+        heating = joule_heating(u, reference)
+        drives = (np.ascontiguousarray(np.maximum(heating, 0.0)), np.ascontiguousarray(np.maximum(-heating, 0.0)))
+        carried = state is not None and len(state.values) == 4
+        temperatures = []
+        for wire, (drive, tau) in enumerate(zip(drives, (self.parameters["tau_a_s"], self.parameters["tau_b_s"]), strict=True)):
+            start, start_drive = (state.values[2 * wire], state.values[2 * wire + 1]) if carried else (0.0, drive[0])
+            out = np.empty(drive.size)
+            _lag_run(t, drive, tau, float(start), float(start_drive), first_step(t, state), out)
+            temperatures.append(out)
+        wire_a, wire_b = temperatures
+        end = (float(wire_a[-1]), float(drives[0][-1]), float(wire_b[-1]), float(drives[1][-1]))
+        return wire_a - wire_b, EffectState(float(t[-1]), end)
+
+    # --- how a record starts -------------------------------------------------------------------
+
+    def settled(self, u0: float) -> float:
+        """What an input effect gives [A] once its input has been held at u0 [A] long enough."""
+        if self.kind in ("thermal_lag", "wire_thermal"):
+            return float(joule_heating(u0, self.parameters.get("joule_reference_a", 0.0)))
+        return float(u0)
+
+    def start_state(self, t: np.ndarray, u: np.ndarray, kind: str, values: tuple[float, ...] = ()
+                    ) -> EffectState | None:
+        """The state before the record (t [s], u [A] as this effect sees them) starts: None from rest; held
+        at u[0] long enough to settle; or free, the FREE_VALUES given."""
+        if kind == "rest":
+            return None
+        step = float(t[1] - t[0]) if t.size > 1 else 1.0
+        before = float(t[0]) - step
+        u0 = float(u[0])
+        if kind == "free" and len(values) != len(FREE_VALUES[self.kind]):
+            raise InputError(f"effect {self.kind}: a free start takes {len(FREE_VALUES[self.kind])} values")
+        free = kind == "free"
+        if self.kind == "thermal_lag":
+            drive = self.settled(u0)
+            return EffectState(before, (float(values[0]) if free else drive, drive))
+        if self.kind == "wire_thermal":
+            heating = self.settled(u0)
+            a, b = max(heating, 0.0), max(-heating, 0.0)
+            return EffectState(before, ((float(values[0]), a, float(values[1]), b) if free else (a, a, b, b)))
+        if self.kind == "delay":
+            held = float(values[0]) if free else u0
+            earliest = before - self.parameters["delay_s"] - step
+            return EffectState(before, (earliest, held, before, held))
+        if self.kind == "drift":
+            return EffectState(float(t[0]), (float(values[0]) if free else 0.0,))
+        return EffectState(before, (u0,))
 
     def _lagged(self, t: np.ndarray, u: np.ndarray, state: EffectState | None) -> tuple[np.ndarray, EffectState]:
         reference = self.parameters.get("joule_reference_a", 0.0)
@@ -212,12 +271,20 @@ class Effect:
 PARAMETERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "thermal_lag": (("tau_s",), ("joule_reference_a",)),
     "delay": (("delay_s",), ()),
-    "rate": (("rate_gain_s_per_A",), ()),
+    "rate": ((), ("rate_gain_s_per_A", "rate_shift_m_s_per_A")),
     "drift": (("drift_m_per_s",), ("creep_m", "creep_tau_s")),
+    "wire_thermal": (("tau_a_s", "tau_b_s", "joule_reference_a"), ()),
 }
 NON_NEGATIVE = {"thermal_lag": ("tau_s", "joule_reference_a"), "delay": ("delay_s",),
-                "rate": ("rate_gain_s_per_A",), "drift": ()}
-ROLES = {"thermal_lag": "input", "delay": "input", "rate": "gpi", "drift": "output"}
+                "rate": ("rate_gain_s_per_A", "rate_shift_m_s_per_A"), "drift": (),
+                "wire_thermal": ("tau_a_s", "tau_b_s", "joule_reference_a")}
+ROLES = {"thermal_lag": "input", "delay": "input", "rate": "gpi", "drift": "output", "wire_thermal": "input"}
+# The values a free start gives each effect (units in the names); the GPI's operators take one more, the
+# last turning point of what the GPI sees [A] (see sma_stage.model.identified.Start).
+FREE_VALUES: dict[str, tuple[str, ...]] = {
+    "thermal_lag": ("lag_state_a",), "delay": ("held_current_a",), "rate": (), "drift": ("elapsed_s",),
+    "wire_thermal": ("wire_a_a", "wire_b_a"),
+}
 
 
 def input_rate(t: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -233,29 +300,34 @@ def drift_regressors(elapsed_s: np.ndarray, creep_tau_s: float | None) -> np.nda
 
 
 @numba.njit(cache=True, nogil=True)
-def _rate_output(u: np.ndarray, rate: np.ndarray, theta: np.ndarray, operators: int, gain: float,
+def _rate_output(u: np.ndarray, rate: np.ndarray, theta: np.ndarray, operators: int, gain: float, shift: float,
                  states: np.ndarray, out: np.ndarray) -> None:
-    """GPI output with thresholds a9 i (1 + gain rate_k) and weights a10 exp(-a11 a9 i); states in place."""
+    """GPI output with thresholds a9 i (1 + gain rate_k) + shift rate_k and weights a10 exp(-a11 a9 i);
+    states in place."""
     nominal = theta[8] * np.arange(operators)
     weights = theta[9] * np.exp(-theta[10] * nominal)
     for k in range(u.size):
         low = theta[0] * math.tanh(theta[1] * u[k] + theta[2]) + theta[3]
         high = theta[4] * math.tanh(theta[5] * u[k] + theta[6]) + theta[7]
         stretch = 1.0 + gain * rate[k]
+        widen = shift * rate[k]
         total = 0.0
         for i in range(operators):
-            z = max(low - nominal[i] * stretch, min(high + nominal[i] * stretch, states[i]))
+            threshold = nominal[i] * stretch + widen
+            z = max(low - threshold, min(high + threshold, states[i]))
             states[i] = z
             total += weights[i] * z
         out[k] = total
 
 
 def rate_forward(u: np.ndarray, rate: np.ndarray, theta: np.ndarray, operators: int, gain_s_per_A: float,
-                 states: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(GPI output [output unit] with thresholds a9 i (1 + c |du/dt|), the operator states at the end);
-    theta is a1..a11, rate |du/dt| [A/s], c [s/A]; states start at zero unless given."""
+                 states: np.ndarray | None = None, shift_s_per_A: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(GPI output [output unit] with thresholds a9 i (1 + c |du/dt|) + b |du/dt|, the operator states at
+    the end); theta is a1..a11, rate |du/dt| [A/s], c [s/A], b [output unit s/A]; states start at zero
+    unless given."""
     out = np.empty(np.size(u))
     end = np.zeros(int(operators)) if states is None else np.array(states, dtype=float)
     _rate_output(np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(rate, dtype=float),
-                 np.ascontiguousarray(theta, dtype=float), int(operators), float(gain_s_per_A), end, out)
+                 np.ascontiguousarray(theta, dtype=float), int(operators), float(gain_s_per_A),
+                 float(shift_s_per_A), end, out)
     return out, end

@@ -21,7 +21,7 @@ import yaml
 from sma_stage.errors import InputError
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import plain_values
-from sma_stage.model.effects import Effect, EffectState, rate_forward
+from sma_stage.model.effects import FREE_VALUES, START_KINDS, Effect, EffectState, rate_forward
 from sma_stage.model.forward import as_signal, forward_with_states
 from sma_stage.model.parameters import DEFAULT_OPERATORS, MODEL_KIND, GPIParameters, check_operators
 
@@ -45,6 +45,26 @@ class ModelState:
         """Plain values for YAML."""
         return {"operators": [float(value) for value in self.operators],
                 "effects": [state.to_dict() for state in self.effects]}
+
+
+@dataclass(frozen=True)
+class Start:
+    """How a record starts: `rest` (the current switched on one sample period before the first sample,
+    every state at rest), `held` (held at the first current long enough to settle, reached from rest), or
+    `free`: `values` are the last turning point of what the GPI sees [A] (its operators were brought
+    from rest to it), then each effect's FREE_VALUES in the model's order."""
+
+    kind: str = "rest"
+    values: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.kind not in START_KINDS:
+            raise InputError(f"unknown start {self.kind!r}; known: {', '.join(START_KINDS)}")
+        object.__setattr__(self, "values", tuple(float(value) for value in self.values))
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain values for the JSON report."""
+        return {"kind": self.kind, "values": list(self.values)}
 
 
 @dataclass(frozen=True)
@@ -93,6 +113,48 @@ class IdentifiedModel:
         """The same model with no carried state."""
         return replace(self, state=None)
 
+    # --- how a record starts ------------------------------------------------------------------
+
+    @property
+    def free_start_names(self) -> list[str]:
+        """What a free start's values are, in order (units in the names)."""
+        return ["gpi_turning_point_a"] + [f"{effect.kind}.{name}" for effect in self.effects
+                                          for name in FREE_VALUES[effect.kind]]
+
+    def start_state(self, t: np.ndarray, u: np.ndarray, start: Start) -> ModelState | None:
+        """The state before a record (t [s], u [A]) that starts as `start` says (None: from rest)."""
+        if start.kind == "rest":
+            return None
+        t, u = _record(t, u)
+        if start.kind == "free" and len(start.values) != len(self.free_start_names):
+            raise InputError(f"a free start of this model takes {len(self.free_start_names)} values "
+                             f"({', '.join(self.free_start_names)}), got {len(start.values)}")
+        free = list(start.values[1:])
+        states, v, seen = [], u, float(u[0])
+        for effect in self.effects:
+            count = len(FREE_VALUES[effect.kind])
+            values, free = tuple(free[:count]), free[count:]
+            states.append(effect.start_state(t, v, start.kind, values))
+            if effect.role == "input":
+                seen = effect.settled(seen)
+                v = effect.transform(t, v, states[-1])[0]
+        turning = start.values[0] if start.kind == "free" else seen
+        _, operators = forward_with_states(np.array([turning]), self.parameters, self.operators)
+        return ModelState(tuple(float(z) for z in operators), tuple(states))
+
+    def gpi_input(self, t: np.ndarray, u: np.ndarray, state: ModelState | None = None) -> np.ndarray:
+        """What the GPI sees [A]: the current after every input effect, from rest or from state."""
+        t, u = _record(t, u)
+        v = u
+        for index, effect in enumerate(self.effects):
+            if effect.role == "input":
+                v = effect.transform(t, v, None if state is None else state.effects[index])[0]
+        return v
+
+    def predict_from(self, t: np.ndarray, u: np.ndarray, start: Start) -> np.ndarray:
+        """Output [output unit] for a record (t [s], u [A]) that starts as `start` says."""
+        return self.predict(t, u, self.start_state(t, u, start))
+
     # --- forward -------------------------------------------------------------------------------
 
     def predict(self, t: np.ndarray, u: np.ndarray, state: ModelState | None = None) -> np.ndarray:
@@ -118,7 +180,8 @@ class IdentifiedModel:
             index = self.effects.index(rate)
             currents, rates, ends[index] = rate.rate_input(t, v, effect_states[index])
             output, operator_states = rate_forward(currents, rates, self.parameters.as_array(), self.operators,
-                                                   rate.parameters["rate_gain_s_per_A"], operators)
+                                                   rate.parameters.get("rate_gain_s_per_A", 0.0), operators,
+                                                   rate.parameters.get("rate_shift_m_s_per_A", 0.0))
             output = output[1:]
         for index, effect in enumerate(self.effects):
             if effect.role == "output":

@@ -18,6 +18,7 @@ import numpy as np
 
 from sma_stage.errors import InputError
 from sma_stage.identify.effects.base import (
+    FITTED_STARTS,
     Candidate,
     EffectFit,
     NotFitted,
@@ -30,7 +31,7 @@ from sma_stage.identify.effects.base import (
 from sma_stage.identify.fit import FitResult
 from sma_stage.model.effects import EFFECT_KINDS
 
-__all__ = ["EFFECTS", "EFFECT_NAMES", "EffectFit", "NotFitted", "attempt", "check_record", "fit_effect",
+__all__ = ["EFFECTS", "EFFECT_NAMES", "FITTED_STARTS", "EffectFit", "NotFitted", "attempt", "check_record", "fit_effect",
            "lowest_cost", "no_effect", "recount_effect"]
 
 
@@ -53,12 +54,13 @@ EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
 
 
 def fit_effect(name: str, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
-               progress: Progress = None) -> EffectFit:
-    """Fit the candidate effect `name` on (t [s], u [A], y) from the base GPI fit (its operator count)."""
+               progress: Progress = None, starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
+    """Fit the candidate effect `name` on (t [s], u [A], y) from the base GPI fit (its operator count), the
+    record starting as the best of `starts` (rest, held)."""
     if name not in EFFECTS:
         raise InputError(f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
     t, u, y = check_record(t, u, y)
-    return EFFECTS[name].fit(t, u, y, base, progress)
+    return EFFECTS[name].fit(t, u, y, base, progress, starts)
 
 
 def recount_effect(fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,

@@ -26,14 +26,16 @@ from sma_stage.identify.fit import (
 )
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.effects import Effect
-from sma_stage.model.identified import IdentifiedModel
+from sma_stage.model.identified import IdentifiedModel, Start
 from sma_stage.model.parameters import GPIParameters
 
 SEARCH_GRID_POINTS = 6
 LOG_TOLERANCE = 1e-3  # tolerance of the scalar searches on the log of the parameter (0.1 %)
 COARSE_LOG_TOLERANCE = 5e-2  # tolerance of the thorough stage of a search (5 %)
 LAG_RANGE_FRACTION = 0.1  # largest tau or delay, as a fraction of the record's duration
-MIN_LAG_SAMPLES = 0.02  # smallest tau or delay, in sample periods
+MIN_LAG_SAMPLES = 0.25  # smallest tau or delay, in sample periods: the samples do not resolve less
+BOUND_MARGIN = 0.01  # a tau or delay found within 1 % of that bound is refused (not resolved)
+FITTED_STARTS = ("rest", "held")  # how an identification record may start, tried by every input effect's fit
 THOROUGH_STARTS = 2  # data-derived starts of the cold fit in a thorough evaluation
 SEARCH_SAMPLES = 500  # the wide search of tau or d runs on a thinned copy of about this many samples
 NARROW_FACTOR = 1.1  # after a change of operator count, x is searched again within x / 1.1 .. 1.1 x
@@ -80,6 +82,7 @@ class EffectFit:
     samples: int
     parameter_count: int
     seconds: float
+    start: str = "rest"
 
     @property
     def spec(self) -> Effect | None:
@@ -97,10 +100,10 @@ class EffectFit:
         """Whether a further effect can be fitted on top: not after `rate` (it changes the GPI itself)."""
         return self.spec is None or self.spec.role != "gpi"
 
-    def predict(self, t: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Model output [output unit] for another record (time t [s], input u [A]) from an idle stage."""
+    def predict(self, t: np.ndarray, u: np.ndarray, start: str = "rest") -> np.ndarray:
+        """Model output [output unit] for another record (time t [s], input u [A]) from rest or held."""
         t, u = check_record(t, u)
-        return self.model.predict(t, u)
+        return self.model.predict_from(t, u, Start(start))
 
     @property
     def bic(self) -> float:
@@ -207,12 +210,12 @@ def _brent(cost: Callable[[float], float], left: float, right: float, tolerance:
 
 
 def finish_fit(effect: str, values: dict[str, float], gpi: GPIParameters, operators: int, y: np.ndarray,
-            predicted: np.ndarray, parameter_count: int, started: float) -> EffectFit:
+               predicted: np.ndarray, parameter_count: int, started: float, start: str = "rest") -> EffectFit:
     residual = y - predicted
     return EffectFit(
         effect=effect, parameters=values, gpi_parameters=gpi, operators=int(operators),
         identification=error_metrics(y, predicted), cost=float(residual @ residual), samples=int(y.size),
-        parameter_count=int(parameter_count), seconds=time.perf_counter() - started,
+        parameter_count=int(parameter_count), seconds=time.perf_counter() - started, start=start,
     )
 
 
@@ -224,13 +227,14 @@ def report(progress: Progress, message: str) -> None:
 
 
 class Candidate:
-    """A candidate effect: `fit` from the base GPI fit (its operator count), `recount` to choose the
-    operator count again for the model with the effect."""
+    """A candidate effect: `fit` from the base GPI fit (its operator count), the record starting as one
+    of `starts` says (an effect without a state of its own starts the same from each); `recount` to
+    choose the operator count again for the model with the effect."""
 
     name = ""
 
-    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
-            progress: Progress = None) -> EffectFit:
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
+            starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
         raise NotImplementedError
 
     def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
@@ -239,47 +243,70 @@ class Candidate:
 
 
 class InputTransformEffect(Candidate):
-    """The GPI driven by a transformed input transform(t, u, x), x [s] found by a bounded search over
-    log x with the GPI refitted at every x."""
+    """The GPI driven by what an input effect makes of the current, the effect `spec_of(x)` with one
+    parameter x [s] found by a bounded search over log x, the GPI refitted at every x. The record's start
+    is one of `starts` (rest, held: see sma_stage.model.identified.Start): the wide search runs from
+    each, and the search goes on from the one that fits best."""
 
-    def __init__(self, name: str, parameter: str, transform: Callable[[np.ndarray, np.ndarray, float], np.ndarray]):
-        self.name, self.parameter, self.transform = name, parameter, transform
+    def __init__(self, name: str, parameter: str, spec_of: Callable[[float], Effect]):
+        self.name, self.parameter, self.spec_of = name, parameter, spec_of
 
-    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
-            progress: Progress = None) -> EffectFit:
+    def transform(self, t: np.ndarray, u: np.ndarray, value: float, start: str) -> np.ndarray:
+        """What the GPI sees [A] at x = value, the record starting as `start` says."""
+        spec = self.spec_of(value)
+        return spec.transform(t, u, spec.start_state(t, u, start))[0]
+
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
+            starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
         started = time.perf_counter()
         bounds = lag_range(t)
         keep = even_indices(t.size)
-        wide = Refits(lambda x: self.transform(t[keep], u[keep], x), y[keep], base)
-        log_value = scalar_search(wide.cost, *bounds, SEARCH_GRID_POINTS)
-        found = wide.fit(math.exp(log_value)) or base
-        fits = Refits(lambda x: self.transform(t, u, x), y, found)
+        searched = []
+        for start in distinct_starts(self, t, u, starts):
+            wide = Refits(lambda x, start=start: self.transform(t[keep], u[keep], x, start), y[keep], base)
+            log_value = scalar_search(wide.cost, *bounds, SEARCH_GRID_POINTS)
+            searched.append((wide.cost(log_value), start, log_value, wide.fit(math.exp(log_value)) or base))
+        _, start, log_value, found = min(searched, key=lambda entry: entry[0])
+        fits = Refits(lambda x: self.transform(t, u, x, start), y, found)
         value = math.exp(fine_search(fits.cost, log_value, *bounds))
+        if value <= (1.0 + BOUND_MARGIN) * bounds[0]:
+            raise NotFitted(f"{self.name}: {self.parameter} = {value:.4g} is at the search's lower bound "
+                            f"({MIN_LAG_SAMPLES:g} of a sample period): the samples do not resolve it")
         gpi = fits.fit(value, thorough=True)
-        return self._finish(value, gpi, y, base.parameter_count + 1, started, progress)
+        return self._finish(value, gpi, y, base.parameter_count + 1, started, progress, start)
 
     def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
                 progress: Progress = None) -> EffectFit:
         started = time.perf_counter()
         value = fit.parameters[self.parameter]
-        counted = fit_or_none(self.transform(t, u, value), y, None, None, fit.gpi_parameters.output_unit,
-                               starts=THOROUGH_STARTS)
+        counted = fit_or_none(self.transform(t, u, value, fit.start), y, None, None, fit.gpi_parameters.output_unit,
+                              starts=THOROUGH_STARTS)
         if counted is None or pick([fit, counted]) is fit:
             return fit
-        fits = Refits(lambda x: self.transform(t, u, x), y, counted)
+        fits = Refits(lambda x: self.transform(t, u, x, fit.start), y, counted)
         fits.fits[value] = counted
         low, high = lag_range(t)
         narrow = (max(value / NARROW_FACTOR, low), min(value * NARROW_FACTOR, high))
         value = math.exp(scalar_search(fits.cost, *narrow, 3, thorough=False))
-        return self._finish(value, fits.fit(value, thorough=True), y, fit.parameter_count, started, progress)
+        return self._finish(value, fits.fit(value, thorough=True), y, fit.parameter_count, started, progress,
+                            fit.start)
 
     def _finish(self, value: float, gpi: FitResult | None, y: np.ndarray, parameter_count: int, started: float,
-                progress: Progress) -> EffectFit:
+                progress: Progress, start: str) -> EffectFit:
         if gpi is None:
             raise NotFitted(f"{self.name}: the GPI cannot be fitted at {self.parameter} = {value:.4g}")
-        report(progress, f"{self.name}: {self.parameter} = {value:.4g}, {gpi.operators} operators")
-        return finish_fit(self.name, {self.parameter: value}, gpi.parameters, gpi.operators, y, gpi.predicted,
-                       parameter_count, started)
+        report(progress, f"{self.name}: {self.parameter} = {value:.4g}, {gpi.operators} operators, "
+                         f"record from {start}")
+        return finish_fit(self.name, dict(self.spec_of(value).parameters), gpi.parameters, gpi.operators, y,
+                          gpi.predicted, parameter_count, started, start)
+
+
+def distinct_starts(candidate: InputTransformEffect, t: np.ndarray, u: np.ndarray,
+                    starts: tuple[str, ...]) -> tuple[str, ...]:
+    """The starts that give the effect different inputs for this record (held is rest when u[0] is 0)."""
+    if len(starts) > 1 and u[0] == 0.0:
+        return starts[:1]
+    return starts
 
 
 def even_indices(samples: int) -> np.ndarray:

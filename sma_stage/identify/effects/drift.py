@@ -9,6 +9,7 @@ import time
 import numpy as np
 
 from sma_stage.identify.effects.base import (
+    FITTED_STARTS,
     SEARCH_GRID_POINTS,
     THOROUGH_STARTS,
     Candidate,
@@ -38,8 +39,8 @@ class DriftEffect(Candidate):
 
     name = "drift"
 
-    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
-            progress: Progress = None) -> EffectFit:
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
+            starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
         started = time.perf_counter()
         return self._fit_at(t, u, y, base.parameters, base.operators, base.parameter_count, started, progress)
 

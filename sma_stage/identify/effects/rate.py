@@ -1,4 +1,6 @@
-"""`rate`: thresholds r_i(t) = a9 i (1 + c |du/dt|) (the weights keep their nominal p(a9 i)).
+"""`rate`: thresholds that grow with the input's rate, in either of the literature's two forms, chosen by
+the data: multiplicative r_i(t) = a9 i (1 + c |du/dt|), or additive r_i(t) = a9 i + b |du/dt| (every
+operator, the first too). The weights keep their nominal p(a9 i).
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from sma_stage.identify.effects.base import (
+    FITTED_STARTS,
     THOROUGH_STARTS,
     Candidate,
     EffectFit,
@@ -32,10 +35,14 @@ RATE_GAIN_LIMIT = 100.0  # largest c, times 1 / max |du/dt|
 RATE_MAX_EVALUATIONS = 200
 
 
+FORMS = {"multiplicative": "rate_gain_s_per_A", "additive": "rate_shift_m_s_per_A"}  # form -> its parameter
+
+
 def rate_model_output(t: np.ndarray, u: np.ndarray, params: GPIParameters, operators: int,
-                      gain_s_per_A: float) -> np.ndarray:
-    """The rate model's output [output unit] for a record (t [s], u [A]) from an idle stage."""
-    return IdentifiedModel(params, operators, (Effect("rate", {"rate_gain_s_per_A": gain_s_per_A}),)).predict(t, u)
+                      gain_s_per_A: float, form: str = "multiplicative") -> np.ndarray:
+    """The rate model's output [output unit] for a record (t [s], u [A]) from an idle stage; gain_s_per_A is
+    c [s/A] (multiplicative) or b [output unit s/A] (additive)."""
+    return IdentifiedModel(params, operators, (Effect("rate", {FORMS[form]: gain_s_per_A}),)).predict(t, u)
 
 
 def _rate_record(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -51,19 +58,22 @@ class _RateFit:
     operators: int
     gain: float
     cost: float
+    form: str
 
 
 class RateEffect(Candidate):
-    """GPI with rate-dependent thresholds a9 i (1 + c |du/dt|): c [s/A] scanned with the GPI held, then
-    a1..a11 and c refitted together (trust-region reflective, a10 solved linearly inside)."""
+    """GPI with rate-dependent thresholds, each form fitted and the lower cost kept (both add one
+    parameter): the rate coefficient scanned with the GPI held, then a1..a11 and it refitted together
+    (trust-region reflective, a10 solved linearly inside)."""
 
     name = "rate"
 
-    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
-            progress: Progress = None) -> EffectFit:
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
+            starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
         started = time.perf_counter()
         currents, rates = _rate_record(t, u)
-        found = _rate_fit(currents, rates, y, base.parameters, base.operators)
+        found = min((_rate_fit(currents, rates, y, base.parameters, base.operators, form) for form in FORMS),
+                    key=lambda fit: fit.cost)
         return self._finish(found, t, u, y, base.parameter_count + 1, started, progress)
 
     def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
@@ -76,7 +86,7 @@ class RateEffect(Candidate):
         for count in OPERATOR_CANDIDATES:
             start = None if count == fit.operators else fit_or_none(u, y, count, None, unit, None, THOROUGH_STARTS)
             if start is not None:
-                fits.append(_rate_fit(currents, rate, y, start.parameters, count))
+                fits.append(_rate_fit(currents, rate, y, start.parameters, count, fit_form(fit)))
         chosen = pick(fits)
         if chosen is fit:
             return fit
@@ -84,26 +94,34 @@ class RateEffect(Candidate):
 
     def _finish(self, found: _RateFit, t: np.ndarray, u: np.ndarray, y: np.ndarray, parameter_count: int,
                 started: float, progress: Progress) -> EffectFit:
-        params, operators, gain = found.params, found.operators, found.gain
-        report(progress, f"rate: rate_gain_s_per_A = {gain:.4g}, {operators} operators")
-        return finish_fit(self.name, {"rate_gain_s_per_A": gain}, params, operators, y,
-                       rate_model_output(t, u, params, operators, gain), parameter_count, started)
+        params, operators, gain, name = found.params, found.operators, found.gain, FORMS[found.form]
+        report(progress, f"rate ({found.form}): {name} = {gain:.4g}, {operators} operators")
+        return finish_fit(self.name, {name: gain}, params, operators, y,
+                          rate_model_output(t, u, params, operators, gain, found.form), parameter_count, started)
+
+
+def fit_form(fit: EffectFit) -> str:
+    """The form of a fitted rate effect."""
+    return next(form for form, name in FORMS.items() if name in fit.parameters)
 
 
 def _rate_fit(u: np.ndarray, rate: np.ndarray, y: np.ndarray, start_params: GPIParameters,
-              operators: int) -> _RateFit:
-    """The rate model fitted from a GPI start: a scan of c with the GPI held, then everything together.
-    u and rate [A, A/s] carry the idle-start sample ahead of y's first (see _rate_record)."""
-    scale = 1.0 / max(float(np.max(rate)), np.finfo(float).tiny)
+              operators: int, form: str) -> _RateFit:
+    """The rate model of one form fitted from a GPI start: a scan of its coefficient with the GPI held, then
+    everything together. u and rate [A, A/s] carry the idle-start sample ahead of y's first (see
+    _rate_record). The coefficient's scale: one over the largest rate (multiplicative), the largest
+    threshold over it (additive)."""
     start = start_params.as_array()
+    largest_threshold = abs(start[8]) * max(operators - 1, 1)
+    scale = (1.0 if form == "multiplicative" else largest_threshold) / max(float(np.max(rate)), np.finfo(float).tiny)
     grid = [factor * scale for factor in RATE_GAIN_GRID]
-    scan = [_rate_projection(start, gain, u, rate, y, operators)[1] for gain in grid]
+    scan = [_rate_projection(start, gain, u, rate, y, operators, form)[1] for gain in grid]
     free = [k for k in range(11) if k != 9]
 
     def residual(x: np.ndarray) -> np.ndarray:
         values = start.copy()
         values[free] = x[:-1]
-        return _rate_projection(values, x[-1], u, rate, y, operators)[2]
+        return _rate_projection(values, x[-1], u, rate, y, operators, form)[2]
 
     lower = np.full(len(free) + 1, -np.inf)
     upper = np.full(len(free) + 1, np.inf)
@@ -114,19 +132,22 @@ def _rate_fit(u: np.ndarray, rate: np.ndarray, y: np.ndarray, start_params: GPIP
     values = start.copy()
     values[free] = solution.x[:-1]
     gain = float(solution.x[-1])
-    values[9], cost, _ = _rate_projection(values, gain, u, rate, y, operators)
-    return _RateFit(GPIParameters.from_array(values, start_params.output_unit), operators, gain, cost)
+    values[9], cost, _ = _rate_projection(values, gain, u, rate, y, operators, form)
+    return _RateFit(GPIParameters.from_array(values, start_params.output_unit), operators, gain, cost, form)
 
 
 def _rate_projection(values: np.ndarray, gain: float, u: np.ndarray, rate: np.ndarray, y: np.ndarray,
-                     operators: int) -> tuple[float, float, np.ndarray]:
+                     operators: int, form: str) -> tuple[float, float, np.ndarray]:
     """(best a10 >= 0, SSR, residual in output spans) for the rate model with a1..a9, a11 from values;
     u and rate have one sample more than y (the idle start), whose output is left out."""
     theta = values.copy()
     theta[9] = 1.0
-    shape = rate_forward(u, rate, theta, operators, gain)[0][1:]
+    multiplied, shifted = (gain, 0.0) if form == "multiplicative" else (0.0, gain)
+    shape = rate_forward(u, rate, theta, operators, multiplied, None, shifted)[0][1:]
     norm = float(shape @ shape)
     a10 = max(float(shape @ y) / norm, 0.0) if norm > 0.0 else 0.0
     residual = a10 * shape - y
     return a10, float(residual @ residual), residual / max(float(np.ptp(y)), np.finfo(float).tiny)
+
+
 EFFECT = RateEffect()

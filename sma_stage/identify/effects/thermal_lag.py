@@ -4,12 +4,10 @@ the current held between samples (the forward model: sma_stage.model.effects).
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Callable
-
 import numpy as np
 
 from sma_stage.identify.effects.base import (
+    FITTED_STARTS,
     Candidate,
     EffectFit,
     InputTransformEffect,
@@ -39,15 +37,14 @@ class ThermalLagEffect(Candidate):
     drive is filtered linearly). The heating reading reports joule_reference_a = u_ref."""
 
     name = "thermal_lag"
-    PARAMETER = "joule_reference_a"
 
-    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
-            progress: Progress = None) -> EffectFit:
+    def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
+            starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
         reference = float(np.max(np.abs(u)))
         readings = [self._reading(None)]
         if reference > 0.0:
             readings.append(self._reading(reference))
-        outcomes = [attempt(self.name, lambda reading=reading: reading.fit(t, u, y, base, progress))
+        outcomes = [attempt(self.name, lambda reading=reading: reading.fit(t, u, y, base, progress, starts))
                     for reading in readings]
         best = lowest_cost(outcome for outcome in outcomes if not isinstance(outcome, NotFitted))
         if best is None:
@@ -57,25 +54,11 @@ class ThermalLagEffect(Candidate):
 
     def recount(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
                 progress: Progress = None) -> EffectFit:
-        return self._reading(fit.parameters.get(self.PARAMETER)).recount(fit, t, u, y, progress)
+        return self._reading(fit.parameters.get("joule_reference_a")).recount(fit, t, u, y, progress)
 
     def _reading(self, reference_a: float | None) -> InputTransformEffect:
-        if reference_a is None:
-            return InputTransformEffect(self.name, "tau_s", lagged_input)
-        return _HeatingLag(self.name, "tau_s", lambda t, u, tau: lagged_input(t, u, tau, reference_a),
-                           {self.PARAMETER: reference_a})
+        fixed = {} if reference_a is None else {"joule_reference_a": reference_a}
+        return InputTransformEffect(self.name, "tau_s", lambda tau: Effect(self.name, {"tau_s": tau, **fixed}))
 
 
-class _HeatingLag(InputTransformEffect):
-    """The lag of the Joule heating: an InputTransformEffect that also reports the heating's reference."""
-
-    def __init__(self, name: str, parameter: str, transform: Callable[[np.ndarray, np.ndarray, float], np.ndarray],
-                 fixed: dict[str, float]) -> None:
-        super().__init__(name, parameter, transform)
-        self.fixed = fixed
-
-    def _finish(self, value: float, gpi: FitResult | None, y: np.ndarray, parameter_count: int, started: float,
-                progress: Progress) -> EffectFit:
-        fit = super()._finish(value, gpi, y, parameter_count, started, progress)
-        return dataclasses.replace(fit, parameters={**fit.parameters, **self.fixed})
 EFFECT = ThermalLagEffect()

@@ -1,0 +1,129 @@
+"""How a record starts, found from its data for a given model: from rest, held at its first current long
+enough to settle, or a free state (the GPI's last turning point and each effect's state values, fitted).
+
+The choice is by the Bayesian information criterion over the whole record, the free values counted as
+parameters: a free start is taken only when it explains the record's first seconds better than its
+extra parameters cost. Nothing is trimmed: the errors of every sample count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from sma_stage.identify.fit import information_criterion
+from sma_stage.model.effects import FREE_VALUES, START_KINDS, joule_heating
+from sma_stage.model.identified import IdentifiedModel, Start
+
+TURNING_GRID_POINTS = 9  # turning points tried before the free values are polished
+FREE_MAX_EVALUATIONS = 60
+ELAPSED_LIMIT_FACTOR = 10.0  # a drift's elapsed time before the record: at most this many record lengths
+
+
+@dataclass(frozen=True)
+class StartFit:
+    """The start found for a record: the start, the model's output from it [output unit], its SSR
+    [output unit^2] and BIC, and the BIC of every kind tried."""
+
+    start: Start
+    predicted: np.ndarray = field(repr=False)
+    cost: float
+    bic: float
+    tried: dict[str, float]
+
+    def to_dict(self, model: IdentifiedModel) -> dict[str, object]:
+        """Plain values for the JSON report: the kind, the free values by name, the BIC of each kind."""
+        found: dict[str, object] = {"kind": self.start.kind, "bic": dict(self.tried)}
+        if self.start.kind == "free":
+            found["values"] = dict(zip(model.free_start_names, self.start.values, strict=True))
+        return found
+
+
+def _fitted(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray, start: Start,
+            free_count: int = 0) -> StartFit:
+    predicted = model.predict_from(t, u, start)
+    residual = y - predicted
+    cost = float(residual @ residual)
+    return StartFit(start, predicted, cost, information_criterion(cost, y.size, free_count), {})
+
+
+def estimate_start(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                   kinds: tuple[str, ...] = START_KINDS) -> StartFit:
+    """The start of least BIC among `kinds` for the record (t [s], u [A], y [output unit]) under the model."""
+    found = {kind: (_free(model, t, u, y) if kind == "free" else _fitted(model, t, u, y, Start(kind)))
+             for kind in kinds}
+    best = min(found.values(), key=lambda fit: fit.bic)
+    return StartFit(best.start, best.predicted, best.cost, best.bic, {kind: fit.bic for kind, fit in found.items()})
+
+
+def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> StartFit:
+    """The free start of least SSR: the turning point over a grid, then every free value polished together
+    by bounded least squares from the best grid point."""
+    low, high = _bounds(model, t, u)
+    held = model.start_state(t, u, Start("held"))
+    held_values = _held_values(model, held)
+    start_values = np.clip(held_values, low, high)
+    grid = np.linspace(low[0], high[0], TURNING_GRID_POINTS)
+    costs = [_fitted(model, t, u, y, Start("free", (turning, *start_values[1:]))).cost for turning in grid]
+    start_values[0] = grid[int(np.argmin(costs))]
+    scale = max(float(np.ptp(y)), np.finfo(float).tiny)
+
+    def residual(values: np.ndarray) -> np.ndarray:
+        return (model.predict_from(t, u, Start("free", tuple(values))) - y) / scale
+
+    interior = np.clip(start_values, low + 1e-9 * (high - low), high - 1e-9 * (high - low))
+    solution = least_squares(residual, interior, bounds=(low, high), method="trf", x_scale="jac",
+                             diff_step=1e-4, max_nfev=FREE_MAX_EVALUATIONS)
+    return _fitted(model, t, u, y, Start("free", tuple(float(v) for v in solution.x)), low.size)
+
+
+def _held_values(model: IdentifiedModel, held: object) -> np.ndarray:
+    """The free values that reproduce the held start (the start of the polish)."""
+    values = [0.0]
+    for effect, state in zip(model.effects, held.effects if held is not None else [None] * len(model.effects),
+                            strict=True):
+        names = FREE_VALUES[effect.kind]
+        if not names:
+            continue
+        if state is None:
+            values.extend([0.0] * len(names))
+        elif effect.kind == "wire_thermal":
+            values.extend([state.values[0], state.values[2]])
+        elif effect.kind == "delay":
+            values.append(state.values[1])
+        else:
+            values.append(state.values[0])
+    return np.array(values, dtype=float)
+
+
+def _bounds(model: IdentifiedModel, t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the free values: the turning point and each state within what the record's own input
+    could make (the GPI input's range, with half of it again on either side)."""
+    v = model.gpi_input(t, u, model.start_state(t, u, Start("held")))
+    margin = 0.5 * max(float(np.ptp(v)), 1e-12)
+    low, high = [float(np.min(v)) - margin], [float(np.max(v)) + margin]
+    current = (float(np.min(u)), float(np.max(u)))
+    for effect in model.effects:
+        reference = effect.parameters.get("joule_reference_a", 0.0)
+        heating = [float(joule_heating(value, reference)) for value in current]
+        if effect.kind == "thermal_lag":
+            low.append(min(heating[0], 0.0))
+            high.append(max(heating[1], 0.0))
+        elif effect.kind == "wire_thermal":
+            low.extend([0.0, 0.0])
+            high.extend([max(heating[1], 1e-12), max(-heating[0], 1e-12)])
+        elif effect.kind == "delay":
+            low.append(min(current[0], 0.0))
+            high.append(max(current[1], 0.0) + (1e-12 if current[1] <= 0.0 else 0.0))
+        elif effect.kind == "drift":
+            low.append(0.0)
+            high.append(ELAPSED_LIMIT_FACTOR * max(float(t[-1] - t[0]), 1e-12))
+    return np.array(low), np.array(high)
+
+
+def start_count(start: Start) -> int:
+    """The parameters a start adds to a fit: its free values (none for rest or held)."""
+    return len(start.values) if start.kind == "free" else 0
+
