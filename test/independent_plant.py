@@ -23,7 +23,6 @@ recorded span, Gaussian.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -69,9 +68,9 @@ class Record:
 
 
 def identification_signal(t: np.ndarray) -> np.ndarray:
-    """Current [A]: a slow sweep with a faster wave on it, so that minor loops of every size occur; 4.5 A at
+    """Current [A]: a slow sweep with a faster wave on it, so that minor loops of every size occur, over the validation signal's range; 5 A at
     t = 0."""
-    return 3.2 * np.cos(2 * np.pi * t / 30.0) + 1.3 * np.cos(2 * np.pi * t / 6.1)
+    return 3.5 * np.cos(2 * np.pi * t / 30.0) + 1.5 * np.cos(2 * np.pi * t / 6.1)
 
 
 def validation_signal(t: np.ndarray) -> np.ndarray:
@@ -89,8 +88,8 @@ def with_history(signal: Signal, start: str, seed: int) -> Signal:
     def earlier(t: np.ndarray) -> np.ndarray:
         if start == "held":
             return np.full_like(t, first)
-        wave = sum(a * np.sin(2 * np.pi * t / p + f) for a, p, f in zip(amplitudes, periods, phases))
-        at_zero = sum(a * np.sin(f) for a, f in zip(amplitudes, phases))
+        wave = sum(a * np.sin(2 * np.pi * t / p + f) for a, p, f in zip(amplitudes, periods, phases, strict=True))
+        at_zero = sum(a * np.sin(f) for a, f in zip(amplitudes, phases, strict=True))
         return np.clip(first + wave - at_zero, -5.0, 5.0)
 
     def joined(t: np.ndarray) -> np.ndarray:
@@ -183,7 +182,7 @@ def record(effect: str, signal: Signal, start: str, seed: int, noise_seed: int) 
 
 
 def make_records(effect: str, seed: int = 0) -> tuple[Record, Record]:
-    """(identification record held at 4.5 A before it, validation record after an arbitrary history)."""
+    """(identification record held at 5 A before it, validation record after an arbitrary history)."""
     if effect not in TRUTH:
         raise ValueError(f"unknown effect {effect!r}")
     return (record(effect, identification_signal, "held", seed, 2 * seed),

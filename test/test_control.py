@@ -8,9 +8,11 @@ import pytest
 
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import imc_gains
+from sma_stage.control.thermal import ThermalState
 from sma_stage.demo import DEFAULT_MODEL
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
+from sma_stage.model.effects import EffectState, lag_step
 
 SHIPPED = load_model_file(DEFAULT_MODEL)
 MODEL = IdentifiedModel(SHIPPED.parameters, SHIPPED.operators)  # its GPI, without the shipped lag
@@ -161,10 +163,10 @@ def test_the_model_runs_on_from_the_state_it_carries():
     model = lagged(6.0)
     _, state = model.run(t, 4.0 * np.sin(2.0 * np.pi * t / 250.0))
     carried = Compensator(replace(model, state=state), LIMIT_A)
-    assert carried.lag_state_a == state.effects[0].values[0] != 0.0
+    assert carried.thermal.seen == state.effects[0].values[0] != 0.0
     assert np.array_equal(carried.inverse.states, np.array(state.operators)) and np.any(carried.inverse.states)
     fresh = Compensator(model, LIMIT_A)
-    assert fresh.lag_state_a == 0.0 and not np.any(fresh.inverse.states)
+    assert fresh.thermal.seen == 0.0 and not np.any(fresh.inverse.states)
 
 
 @pytest.mark.parametrize("measured_m", [None, 0.0], ids=["feedforward", "loop"])
@@ -182,7 +184,7 @@ def test_the_lead_limit_bounds_the_lead_and_the_lag_then_follows_with_tau_over_t
     states = []
     for _ in range(400):
         core.command(1e-4, measured_m, dt_s)
-        states.append(core.lag_state_a)
+        states.append(core.thermal.seen)
     gap = target - np.array(states)
     rate = -np.log(gap[200] / gap[100]) / (100 * dt_s)  # the gap decays as exp(-t limit / tau)
     assert rate == pytest.approx(limit / tau_s, rel=0.02)
@@ -253,7 +255,7 @@ def test_following_the_applied_current_keeps_the_model_where_the_stage_is():
         if k:
             state = current + (state - current) * math.exp(-dt_s / tau_s)
         forward.step(state)
-    assert following.lag_state_a == pytest.approx(state, abs=1e-12)
+    assert following.thermal.seen == pytest.approx(state, abs=1e-12)
     assert np.allclose(following.inverse.states, forward.states, rtol=0.0, atol=1e-15)
     assert following.integral_m == 0.0 and following.command_a == u[-1]
 
@@ -270,3 +272,27 @@ def test_a_huge_control_step_bounds_the_integral_instead_of_overflowing():
     core = Compensator(MODEL, LIMIT_A, ki=83.0, max_rate_a_per_s=0.0)
     current = core.command(0.0, 1.0, 1.7724361384671202e308)
     assert current == -LIMIT_A and math.isfinite(core.integral_m)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_wires_lead_brings_their_temperature_difference_to_the_target_in_one_held_step(seed):
+    """wire_thermal: from any wire temperatures, the lead's held current (unlimited) moves the difference of
+    the two wires, stepped by the forward model's own lag, exactly to the target; the current's sign says
+    which wire it heats, and a larger target never asks for less current."""
+    rng = np.random.default_rng(seed)
+    effect = Effect("wire_thermal", {"tau_a_s": 2.0, "tau_b_s": 7.0, "joule_reference_a": 5.0})
+    hold = 0.1
+    for _ in range(50):
+        wires = rng.uniform(0.0, 5.0, 2)
+        state = EffectState(0.0, (wires[0], 0.0, wires[1], 0.0))
+        target = (wires[0] - wires[1]) + rng.uniform(-0.2, 0.2)
+        thermal = ThermalState(effect, state)
+        current = thermal.current(thermal.lead(target, hold, math.inf))
+        thermal.advance(current, hold)
+        assert thermal.seen == pytest.approx(target, abs=1e-9)
+        heated_a = lag_step(wires[0], max(current, 0) ** 2 / 5.0, max(current, 0) ** 2 / 5.0, hold, 2.0)
+        heated_b = lag_step(wires[1], min(current, 0) ** 2 / 5.0, min(current, 0) ** 2 / 5.0, hold, 7.0)
+        assert heated_a - heated_b == pytest.approx(target, abs=1e-9)
+    start = ThermalState(effect, EffectState(0.0, (1.0, 0.0, 2.0, 0.0)))
+    currents = [start.current(start.lead(target, hold, math.inf)) for target in np.linspace(-1.5, -0.5, 21)]
+    assert np.all(np.diff(currents) >= 0.0)

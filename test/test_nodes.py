@@ -496,7 +496,7 @@ def test_compensator_model_follows_the_current_applied_while_it_does_not_command
     for _ in range(150):  # 3 A for about 1.5 s: the stage driven by someone else
         applied_pub.publish(Float64(data=3.0))
         time.sleep(0.01)
-    wait_until(lambda: compensator.core.lag_state_a > 2.9, 5.0, "the lag's state to follow the applied 3 A")
+    wait_until(lambda: compensator.core.thermal.seen > 2.9, 5.0, "the lag's state to follow the applied 3 A")
     assert np.any(compensator.inverse.states != 0.0) and compensator.command_a == 3.0
     probe.setpoint_pub.publish(Float64(data=1e-4))
     wait_until(lambda: probe.latest() is not None, 5.0, "a command for the setpoint")

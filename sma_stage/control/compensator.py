@@ -36,6 +36,9 @@ Each effect of the IdentifiedModel is stepped with the code identification fitte
   ends: exact for a held current), and the lead sends the held drive that brings it to v* over one step
   (`lag_drive_for`, that step solved for its drive); in the heating reading the lead works in heating
   units and sends the current whose Joule heating it wants.
+- wire_thermal: the two wires' temperatures are advanced with the command sent (each wire heated by its
+  own sign of the current, both cooling); the lead sends the held current that brings their difference to
+  v* over one step, in closed form (sma_stage.control.thermal), within the same lead limit.
 - drift: its offset follows the model's time (from where the model's state left it, else 0) and is
   taken off the target.
 - rate: compensated quasi-statically: the inverse of the rate model's GPI at zero input rate (the
@@ -52,9 +55,11 @@ import math
 
 import numpy as np
 
+from sma_stage.control.thermal import ThermalState
 from sma_stage.errors import InputError, finite_number
 from sma_stage.model import GPIForwardStream, GPIInverseStream, IdentifiedModel
-from sma_stage.model.effects import current_for_heating, joule_heating, lag_drive_for, lag_step
+from sma_stage.model.effects import Effect, EffectState, joule_heating
+from sma_stage.model.identified import ModelState
 
 COMPENSATION = {
     "thermal_lag": "inverted: the lead brings the lag's state to the inverse's output over each step",
@@ -62,7 +67,14 @@ COMPENSATION = {
              "late (the PI loop sees it in the measurement)",
     "rate": "compensated quasi-statically: the inverse of the rate model's GPI at zero input rate",
     "drift": "taken off the target as the model's time runs on",
+    "wire_thermal": "inverted: the lead's held current brings the wires' temperature difference to the inverse's "
+                    "output over each step (closed form: one wire heats, both cool)",
 }
+
+
+def thermal_effect(model: IdentifiedModel) -> Effect | None:
+    """The model's thermal effect (thermal_lag or wire_thermal), which the lead undoes; None without one."""
+    return model.effect("thermal_lag") or model.effect("wire_thermal")
 
 
 def compensation_notes(model: IdentifiedModel) -> dict[str, str]:
@@ -98,8 +110,7 @@ def imc_gains(model: IdentifiedModel, control_period_s: float, lead_limit: float
     period = _non_negative("control_period_s", control_period_s)
     if period == 0.0:
         raise InputError("control_period_s must be above 0")
-    lag = model.effect("thermal_lag")
-    closed = lag.parameters["tau_s"] / max(lead_limit, 1.0) if lag is not None else 0.0
+    closed = ThermalState(thermal_effect(model)).tau_s / max(lead_limit, 1.0)
     return {"kp": closed / (closed + period), "ki": 1.0 / (closed + period)}
 
 
@@ -176,14 +187,14 @@ class Compensator:
         limit = _non_negative("max_current_a", self._limit if max_current_a is None else max_current_a)
         if limit == 0.0:
             raise InputError("max_current_a must be above 0")
-        lag = model.effect("thermal_lag")
-        reference = lag.parameters.get("joule_reference_a", 0.0) if lag is not None else 0.0
+        thermal = thermal_effect(model)
+        reference = thermal.parameters.get("joule_reference_a", 0.0) if thermal is not None else 0.0
         reach = (float(joule_heating(-limit, reference)), float(joule_heating(limit, reference)))
         state = model.state
         inverse = GPIInverseStream(model.parameters, model.operators, self._inverse.method if method is None else method,
                                    initial=None if state is None else np.array(state.operators), input_range=reach)
         self._model, self._inverse, self._limit = model, inverse, limit
-        self._lag, self._reference = lag, reference
+        self._thermal_effect = thermal
         self._drift = model.effect("drift")
         self.reset()
 
@@ -196,22 +207,23 @@ class Compensator:
         self._played_m: float | None = None
         self._commanded = False
         self.saturated = 0
-        self.lag_state_a = self._carried(self._lag, state, 0, 0.0)
-        self.command_a = current_for_heating(self._carried(self._lag, state, 1, 0.0), self._reference)
-        self.drift_elapsed_s = self._carried(self._drift, state, 0, 0.0)
+        effect = self._thermal_effect
+        self.thermal = ThermalState(effect, self._carried_state(effect, state))
+        self.command_a = self.thermal.current(self.thermal.last_drive)
+        drift_state = self._carried_state(self._drift, state)
+        self.drift_elapsed_s = float(drift_state.values[0]) if drift_state is not None and drift_state.values else 0.0
         self._hold_s = 0.0
 
-    def _carried(self, effect: object, state: object, index: int, default: float) -> float:
-        """Value `index` of the effect's carried state (the lag's: its state, its last drive), else default."""
+    def _carried_state(self, effect: Effect | None, state: ModelState | None) -> EffectState | None:
+        """The effect's carried state in the model's state, if any."""
         if effect is None or state is None:
-            return default
-        carried = state.effects[self._model.effects.index(effect)]
-        return float(carried.values[index]) if carried is not None and len(carried.values) > index else default
+            return None
+        return state.effects[self._model.effects.index(effect)]
 
     @property
     def tau_s(self) -> float:
-        """The thermal lag's time constant [s] the lead undoes (0: none)."""
-        return self._lag.parameters["tau_s"] if self._lag is not None else 0.0
+        """The thermal effect's (slowest) time constant [s] the lead undoes (0: none)."""
+        return self.thermal.tau_s
 
     def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
                 hold_s: float | None = None) -> float:
@@ -258,10 +270,8 @@ class Compensator:
         The loop starts again (integral 0)."""
         current = finite_number("current_a", current_a)
         dt = _non_negative("dt_s", dt_s)
-        drive = float(joule_heating(current, self._reference))
-        self.lag_state_a = lag_step(self.lag_state_a, drive, drive, dt, self.tau_s) if dt > 0.0 else \
-            (self.lag_state_a if self._lag is not None else drive)
-        seen = self.lag_state_a if self._lag is not None else drive
+        self.thermal.advance(current, dt)
+        seen = self.thermal.seen
         forward = GPIForwardStream(self._model.parameters, self._model.operators, initial=self._inverse.states)
         forward.step(seen)
         self._inverse.reset(initial=forward.states, previous_input=seen)
@@ -291,16 +301,10 @@ class Compensator:
         return self._played_m
 
     def _lead(self, lag_input: float, dt: float, lead_limit: float) -> float:
-        tau = self.tau_s
         if dt > 0.0:
-            held = float(joule_heating(self.command_a, self._reference))
-            self.lag_state_a = lag_step(self.lag_state_a, held, held, dt, tau)
-        wanted = lag_input
-        if self._hold_s > 0.0 and tau > 0.0:
-            exact = lag_drive_for(self.lag_state_a, lag_input, self._hold_s, tau)
-            limit = self.lag_state_a + lead_limit * (lag_input - self.lag_state_a)
-            wanted = exact if abs(exact - self.lag_state_a) <= abs(limit - self.lag_state_a) else limit
+            self.thermal.advance(self.command_a, dt)
+        wanted = self.thermal.lead(lag_input, self._hold_s, lead_limit)
         low, high = self._inverse.input_range
         clipped = min(high, max(low, wanted))
         self.saturated = self._inverse.last_clipped or (wanted > clipped) - (wanted < clipped)
-        return current_for_heating(clipped, self._reference)
+        return self.thermal.current(clipped)

@@ -15,9 +15,10 @@ or output).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,10 +31,17 @@ from sma_stage.identify.effects import (
     attempt,
     check_record,
     fit_effect,
+    lowest_cost,
     no_effect,
     recount_effect,
 )
-from sma_stage.identify.fit import FitResult, fit_gpi, information_criterion
+from sma_stage.identify.fit import (
+    OPERATOR_CANDIDATES,
+    OPERATOR_MARGIN,
+    FitResult,
+    fit_gpi,
+    information_criterion,
+)
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
 from sma_stage.identify.start import StartFit, estimate_start
@@ -43,6 +51,8 @@ BIC_MARGIN = 10.0  # "very strong" evidence on the Kass-Raftery scale
 VALIDATION_MARGIN = 0.10  # the validation RMS must fall by at least 10 % in the first round
 LATER_VALIDATION_MARGIN = 0.03  # and by at least 3 % in a later round
 REFINE_SWEEPS = 1  # backfitting sweeps over the added effects after each later round
+EXCLUSIVE = {"thermal_lag": ("wire_thermal",), "wire_thermal": ("thermal_lag",)}  # one thermal reading per model
+COUNT_TIE = 0.01  # validation RMS within 1 % of the lowest: the smaller operator count is kept
 RECOUNTED = 2  # accepted candidates (best validation first) whose operator count is chosen again
 # Which residual test points at which effect (the strongest first; ties keep this order).
 POINTERS: dict[str, tuple[str, ...]] = {
@@ -113,6 +123,7 @@ class Diagnosis:
     failures: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
     starts: dict[str, StartFit] = field(default_factory=dict)
+    operators: dict[str, object] = field(default_factory=dict)
 
     @property
     def chosen(self) -> EffectFit:
@@ -130,6 +141,7 @@ class Diagnosis:
             "after": {"validation": _errors(self.after)},
             "effects": list(self.effects),
             "starts": {record: found.to_dict(self.chain.model) for record, found in self.starts.items()},
+            "operators": dict(self.operators),
             "candidates": _candidate_list(self.candidates, self.failures),
             "rounds": [found.to_dict() for found in self.rounds],
         }
@@ -321,9 +333,28 @@ def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Validation, b
     validation = valid.errors(valid.predict(extended.model, extended.start).predicted)
     delta_bic = extended.bic - chain.bic
     accepted, reason = judge(delta_bic, validation, before, margin)
+    if accepted:
+        accepted, reason = _above_noise(extended, fit.effect, ident, reason)
     parameters = fit.parameters if len(chain.stages) == 1 else extended.parameters
     return CandidateResult(fit.effect, parameters, extended.last.identification, validation, delta_bic, accepted,
                            reason, spent_s + time.perf_counter() - started, fit, extended)
+
+
+def _above_noise(chain: Chain, effect: str, ident: Record, reason: str) -> tuple[bool, str]:
+    """(accepted, reason): refused when taking the effect out of the model (its GPI and the other effects
+    kept) changes the identification output by less, RMS, than the model's own residual there: whatever
+    it improved elsewhere (the GPI refitted with it, the other effects refined), its own part is below
+    the noise and the data do not show it."""
+    t_i, u_i, y_i = ident
+    model = chain.model
+    start = Start(chain.start)
+    with_it = model.predict_from(t_i, u_i, start)
+    without = replace(model, effects=tuple(e for e in model.effects if e.kind != effect), state=None)
+    part = float(np.sqrt(np.mean((with_it - without.predict_from(t_i, u_i, start)) ** 2)))
+    noise = float(np.sqrt(np.mean((y_i - with_it) ** 2)))
+    if part < noise:
+        return False, f"its own part of the output, {part:.3g} RMS, is below the residual's {noise:.3g}: not resolved"
+    return True, reason
 
 
 def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics, tests: ResidualTests,
@@ -334,7 +365,8 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
     t_i, u_i, y_i = ident
     v_i, w_i = chain.data(t_i, u_i, y_i)
     last = chain.last
-    names = [effect for effect in rank_candidates(tests) if effect not in chain.effects]
+    taken = {name for effect in chain.effects for name in (effect, *EXCLUSIVE.get(effect, ()))}
+    names = [effect for effect in rank_candidates(tests) if effect not in taken]
     base = chain.base if first else attempt("GPI", lambda: fit_gpi(
         v_i, w_i, operators=last.operators, initial=last.gpi_parameters, output_unit=last.gpi_parameters.output_unit))
     if isinstance(base, NotFitted):
@@ -417,6 +449,51 @@ def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chai
     return chain if fit is chain.last else others.then(fit)
 
 
+def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: Progress = None
+                      ) -> tuple[Chain, dict[str, object]]:
+    """The operator count of the model chosen by the identification BIC and the held-out error together:
+    the GPI refitted at every count of OPERATOR_CANDIDATES with the effects held (from the model's GPI and
+    from a cold fit of every count, the better kept). Every count has the same parameters, so the BIC only
+    ranks their fit to the identification data; it admits the counts whose RMS error there is within
+    OPERATOR_MARGIN of the best (fit_gpi's margin: a BIC within 2 N ln(1 + OPERATOR_MARGIN)), and of
+    those the held-out error chooses: the lowest validation RMS, the smaller count on a near-tie
+    (COUNT_TIE). Returns the chain with that count and the report's
+    "operators" block (the choice, the runner-up, every count's BIC and validation RMS)."""
+    t_i, u_i, y_i = ident
+    v_i, w_i = chain.data(t_i, u_i, y_i)
+    last, unit = chain.last, chain.last.gpi_parameters.output_unit
+    options: dict[int, Chain] = {last.operators: chain}
+    cold = attempt("GPI", lambda: fit_gpi(v_i, w_i, output_unit=unit))
+    cold_fits = {} if isinstance(cold, NotFitted) else cold.by_count
+    for count in OPERATOR_CANDIDATES:
+        if count == last.operators:
+            continue
+        carried = last.gpi_parameters.replace(a9=last.gpi_parameters.a9 * max(last.operators - 1, 1) / max(count - 1, 1))
+        tries = [attempt("GPI", lambda count=count, initial=initial: fit_gpi(
+            v_i, w_i, operators=count, initial=initial, output_unit=unit))
+            for initial in (carried, cold_fits.get(count)) if initial is not None]
+        found = lowest_cost(fit for fit in tries if not isinstance(fit, NotFitted))
+        if found is None:
+            _report(progress, f"{count} operators: {'; '.join(str(fit) for fit in tries)}")
+            continue
+        offset = y_i - w_i
+        stage = replace(last, gpi_parameters=found.parameters, operators=count, cost=found.cost,
+                        identification=error_metrics(y_i, found.predicted + offset))
+        options[count] = chain.without(len(chain.stages) - 1).then(stage)
+    rows = {count: {"bic": option.bic, "validation_rms_pct": valid.errors(
+        valid.predict(option.model, option.start).predicted).rms_pct} for count, option in options.items()}
+    best_bic = min(row["bic"] for row in rows.values())
+    margin = 2.0 * y_i.size * math.log1p(OPERATOR_MARGIN)
+    admissible = sorted((count for count, row in rows.items() if row["bic"] <= best_bic + margin),
+                        key=lambda count: (rows[count]["validation_rms_pct"], count))
+    lowest = rows[admissible[0]]["validation_rms_pct"]
+    chosen = min(count for count in admissible if rows[count]["validation_rms_pct"] <= (1.0 + COUNT_TIE) * lowest)
+    runner_up = next((count for count in admissible if count != chosen), None)
+    _report(progress, f"operators: {chosen} chosen (runner-up {runner_up}) by BIC and held-out error")
+    return options[chosen], {"chosen": chosen, "runner_up": runner_up,
+                             "by_count": {str(count): rows[count] for count in sorted(rows)}}
+
+
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,
              progress: Progress = None, output_unit: str = "m", max_rounds: int = len(EFFECT_NAMES),
              scored_from: int = 0) -> Diagnosis:
@@ -460,10 +537,14 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
-    start_after = validation.predict(chain.model, chain.start) if chain.effects else start_before
+    counts: dict[str, object] = {}
+    if operators is None and chain.last.composable:
+        chain, counts = count_by_held_out(chain, ident_record, validation, progress)
+    changed = bool(chain.effects) or chain.last.operators != base.operators
+    start_after = validation.predict(chain.model, chain.start) if changed else start_before
     predicted_after = start_after.predicted
-    after = validation.errors(predicted_after) if chain.effects else before
-    tests_after = validation.tests(predicted_after) if chain.effects else tests_before
+    after = validation.errors(predicted_after) if changed else before
+    tests_after = validation.tests(predicted_after) if changed else tests_before
     found_order = [found.winner.effect for found in rounds if found.winner is not None]
     return Diagnosis(
         effect=found_order[0] if found_order else "none",
@@ -483,6 +564,7 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         failures=rounds[0].failures if rounds else {},
         seconds=time.perf_counter() - started,
         starts={"identification": estimate_start(chain.model, t_i, u_i, y_i), "validation": start_after},
+        operators=counts,
     )
 
 

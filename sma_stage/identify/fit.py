@@ -38,7 +38,7 @@ from sma_stage.model.parameters import DEFAULT_OPERATORS, PARAMETER_NAMES, GPIPa
 MIN_SAMPLES = 20
 INPUT_MAGNITUDES_A = (1e-6, 1e6)  # the largest |input| a record may have: a current in A
 OUTPUT_MAGNITUDES = (1e-100, 1e100)  # the largest |output|, any unit: the fit is scale-free within these
-OPERATOR_CANDIDATES = (5, 10, 15, 20)
+OPERATOR_CANDIDATES = (5, 10, 15, 20, 25, 30)
 OPERATOR_MARGIN = 0.02  # operators=None: smallest count whose RMS error is within 2 % of the best
 DEFAULT_MAX_ITERATIONS = 200
 SURVEY_SAMPLES = 1000  # every start runs SURVEY_STEPS steps on a thinned copy of about this size,
@@ -78,6 +78,7 @@ class FitResult:
     success: bool
     message: str
     regressor_standard_errors: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    by_count: dict[int, GPIParameters] = field(default_factory=dict)  # operators None: each well-scaled count's fit
 
     @property
     def samples(self) -> int:
@@ -576,7 +577,7 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
         fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress)
     costs = {count: found.cost for count, (found, _) in fits.items()}
     searches = {count: found for count, (found, _) in fits.items()}
-    chosen, params, coefficients, refused = _well_scaled_choice(u, y, matrix, searches, output_unit)
+    chosen, params, coefficients, refused, by_count = _well_scaled_choice(u, y, matrix, searches, output_unit)
     found = fits[chosen][0]
     iterations += sum(spent for _, spent in fits.values())
     note = found.message
@@ -585,8 +586,9 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
         note += f" Operators chosen: {chosen} (RMS % by count {rms})."
     if refused:
         note += f" Refused as badly scaled: {' / '.join(refused)}."
-    return _result(u, y, matrix, chosen, found, params, coefficients, iterations, time.perf_counter() - clock,
-                   note)
+    result = _result(u, y, matrix, chosen, found, params, coefficients, iterations, time.perf_counter() - clock,
+                     note)
+    return dataclasses.replace(result, by_count=by_count) if len(counts) > 1 else result
 
 
 def choose_operator_count(costs: dict[int, float]) -> int:
@@ -611,18 +613,20 @@ def scale_problems(params: GPIParameters, operators: int, y: np.ndarray) -> list
 
 
 def _well_scaled_choice(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, fits: dict[int, _Search],
-                        unit: str) -> tuple[int, GPIParameters, np.ndarray, list[str]]:
+                        unit: str) -> tuple[int, GPIParameters, np.ndarray, list[str], dict[int, GPIParameters]]:
     """The operator count by choose_operator_count among the fits whose parameters pass scale_problems; its
-    normalised parameters and regressor coefficients; why the counts passed over were refused.
-    InputError when none passes."""
+    normalised parameters and regressor coefficients; why the counts passed over were refused; every
+    passing count's parameters. InputError when none passes."""
     costs = {count: found.cost for count, found in fits.items() if math.isfinite(found.cost)}
     refused = [f"{count} operators: the search ended on a non-finite cost" for count in fits if count not in costs]
+    final = {count: _final_parameters(u, y, regressors, count, fits[count], unit) for count in costs}
+    passing = {count: params for count, (params, _) in final.items() if not scale_problems(params, count, y)}
     while costs:
         chosen = choose_operator_count(costs)
-        params, coefficients = _final_parameters(u, y, regressors, chosen, fits[chosen], unit)
+        params, coefficients = final[chosen]
         problems = scale_problems(params, chosen, y)
         if not problems:
-            return chosen, params, coefficients, refused
+            return chosen, params, coefficients, refused, passing
         refused.append(f"{chosen} operators: {', '.join(problems)}")
         del costs[chosen]
     raise InputError(f"the fit found no well-scaled GPI parameters for these data ({' / '.join(refused)})")
