@@ -125,7 +125,7 @@ def test_executables_excite_refit_push_and_track(tmp_path, stage_backend):
             pushed_s = seen.stamps_s[-1]
             assert report["compensator"]["pushed"], report["compensator"]["message"]
             assert report["samples"]["identification"] + report["samples"]["validation"] >= 60, "min_samples"
-            assert report["diagnosis"]["effect"] in ("none", "thermal_lag", "delay", "rate", "drift")
+            assert report["diagnosis"]["effect"] in ("none", *EFFECT_NAMES)
             deployed = load_model_file(model_file)
             assert deployed.without_state().to_dict() == report["identified_model"]
             held = IdentifiedModel.from_yaml_text(client.get_parameters("compensator", ["model"])["model"])

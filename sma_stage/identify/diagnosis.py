@@ -38,14 +38,18 @@ from sma_stage.identify.effects import (
 from sma_stage.identify.fit import (
     OPERATOR_CANDIDATES,
     OPERATOR_MARGIN,
+    SCREEN_SAMPLES,
     FitResult,
     fit_gpi,
     information_criterion,
+    thinned,
 )
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
 from sma_stage.identify.start import StartFit, estimate_start
+from sma_stage.model.forward import forward
 from sma_stage.model.identified import IdentifiedModel, Start
+from sma_stage.model.parameters import GPIParameters
 
 BIC_MARGIN = 10.0  # "very strong" evidence on the Kass-Raftery scale
 VALIDATION_MARGIN = 0.10  # the validation RMS must fall by at least 10 % in the first round
@@ -453,33 +457,32 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
                       ) -> tuple[Chain, dict[str, object]]:
     """The operator count of the model chosen by the identification BIC and the held-out error together:
     the GPI refitted at every count of OPERATOR_CANDIDATES with the effects held (from the model's GPI and
-    from a cold fit of every count, the better kept). Every count has the same parameters, so the BIC only
-    ranks their fit to the identification data; it admits the counts whose RMS error there is within
-    OPERATOR_MARGIN of the best (fit_gpi's margin: a BIC within 2 N ln(1 + OPERATOR_MARGIN)), and of
-    those the held-out error chooses: the lowest validation RMS, the smaller count on a near-tie
-    (COUNT_TIE). Returns the chain with that count and the report's
-    "operators" block (the choice, the runner-up, every count's BIC and validation RMS)."""
+    from a cold fit of every count, the better kept; on a copy thinned to SCREEN_SAMPLES, the chosen count
+    then refitted on all samples). Every count has the same parameters, so the BIC only ranks their fit
+    to the identification data; it admits the counts whose RMS error there is within OPERATOR_MARGIN of
+    the best (fit_gpi's margin: a BIC within 2 N ln(1 + OPERATOR_MARGIN)), and of those the held-out
+    error chooses: the lowest validation RMS, the smaller count on a near-tie (COUNT_TIE). Returns the
+    chain with that count and the report's "operators" block (the choice, the runner-up, every count's
+    BIC and validation RMS)."""
     t_i, u_i, y_i = ident
     v_i, w_i = chain.data(t_i, u_i, y_i)
     last, unit = chain.last, chain.last.gpi_parameters.output_unit
+    keep = thinned(v_i, SCREEN_SAMPLES)
     options: dict[int, Chain] = {last.operators: chain}
-    cold = attempt("GPI", lambda: fit_gpi(v_i, w_i, output_unit=unit))
+    cold = attempt("GPI", lambda: fit_gpi(v_i[keep], w_i[keep], output_unit=unit))
     cold_fits = {} if isinstance(cold, NotFitted) else cold.by_count
     for count in OPERATOR_CANDIDATES:
         if count == last.operators:
             continue
         carried = last.gpi_parameters.replace(a9=last.gpi_parameters.a9 * max(last.operators - 1, 1) / max(count - 1, 1))
         tries = [attempt("GPI", lambda count=count, initial=initial: fit_gpi(
-            v_i, w_i, operators=count, initial=initial, output_unit=unit))
+            v_i[keep], w_i[keep], operators=count, initial=initial, output_unit=unit))
             for initial in (carried, cold_fits.get(count)) if initial is not None]
         found = lowest_cost(fit for fit in tries if not isinstance(fit, NotFitted))
         if found is None:
             _report(progress, f"{count} operators: {'; '.join(str(fit) for fit in tries)}")
             continue
-        offset = y_i - w_i
-        stage = replace(last, gpi_parameters=found.parameters, operators=count, cost=found.cost,
-                        identification=error_metrics(y_i, found.predicted + offset))
-        options[count] = chain.without(len(chain.stages) - 1).then(stage)
+        options[count] = _with_gpi(chain, found.parameters, count, v_i, w_i, y_i)
     rows = {count: {"bic": option.bic, "validation_rms_pct": valid.errors(
         valid.predict(option.model, option.start).predicted).rms_pct} for count, option in options.items()}
     best_bic = min(row["bic"] for row in rows.values())
@@ -489,9 +492,25 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     lowest = rows[admissible[0]]["validation_rms_pct"]
     chosen = min(count for count in admissible if rows[count]["validation_rms_pct"] <= (1.0 + COUNT_TIE) * lowest)
     runner_up = next((count for count in admissible if count != chosen), None)
+    found_chain = options[chosen]
+    if chosen != last.operators and keep.size < v_i.size:
+        polished = attempt("GPI", lambda: fit_gpi(v_i, w_i, operators=chosen, initial=found_chain.last.gpi_parameters,
+                                                  output_unit=unit))
+        if not isinstance(polished, NotFitted):
+            found_chain = _with_gpi(chain, polished.parameters, chosen, v_i, w_i, y_i)
     _report(progress, f"operators: {chosen} chosen (runner-up {runner_up}) by BIC and held-out error")
-    return options[chosen], {"chosen": chosen, "runner_up": runner_up,
-                             "by_count": {str(count): rows[count] for count in sorted(rows)}}
+    return found_chain, {"chosen": chosen, "runner_up": runner_up,
+                         "by_count": {str(count): rows[count] for count in sorted(rows)}}
+
+
+def _with_gpi(chain: Chain, parameters: GPIParameters, operators: int, v_i: np.ndarray, w_i: np.ndarray,
+              y_i: np.ndarray) -> Chain:
+    """The chain with its last GPI replaced (the effects held), scored on the whole identification record."""
+    predicted = forward(v_i, parameters, operators) + (y_i - w_i)
+    residual = y_i - predicted
+    stage = replace(chain.last, gpi_parameters=parameters, operators=operators, cost=float(residual @ residual),
+                    identification=error_metrics(y_i, predicted))
+    return chain.without(len(chain.stages) - 1).then(stage)
 
 
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,

@@ -410,7 +410,7 @@ def _parameters(problem_a1: float, x: np.ndarray, a10: float, operators: int, un
     return normalized(GPIParameters.from_array(theta, output_unit=unit), operators)
 
 
-def _thinned(u: np.ndarray, budget: int) -> np.ndarray:
+def thinned(u: np.ndarray, budget: int) -> np.ndarray:
     """Indices of at most ~budget samples: the input's turning points (when there are few) and an even
     stride. Between kept turning points the input is monotone, so by rate independence the model's
     output at the kept samples is (nearly) unchanged."""
@@ -430,7 +430,7 @@ def _survey(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
     start points (and the iterations spent)."""
     if len(starts) == 1:
         return list(starts), 0
-    survey = _thinned(u, SURVEY_SAMPLES)
+    survey = thinned(u, SURVEY_SAMPLES)
     surveyed = [_glance(u[survey], y[survey], regressors[survey], operators, start, SURVEY_STEPS)
                 for start in starts]
     _report(progress, f"{operators} operators: surveyed {len(starts)} starts on {survey.size} samples")
@@ -468,10 +468,11 @@ def _starts(u: np.ndarray, y: np.ndarray, operators: int, starts: int | Sequence
 
 def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
                starts: Sequence[GPIParameters], max_iterations: int,
-               progress: Callable[[str], None] | None) -> tuple[_Search, int]:
+               progress: Callable[[str], None] | None, refine: bool = True) -> tuple[_Search, int]:
     """Converge several starts on a thinned copy and refine the best on all samples (one start: straight
-    to all samples). Returns the search and the iterations spent."""
-    screen = _thinned(u, SCREEN_SAMPLES)
+    to all samples); refine False: the best on the thinned copy (its cost on that copy), for comparing
+    operator counts before only the chosen one is refined. Returns the search and the iterations spent."""
+    screen = thinned(u, SCREEN_SAMPLES)
     whole = screen.size == u.size
     spent = 0
     start = starts[0]
@@ -485,7 +486,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
                     f"samples: cost {found.cost:.6g}")
             if best is None or found.cost < best.cost:
                 best = found
-        if whole:
+        if whole or not refine:
             return best, spent
         start = _start_from(best)
     found = _search(u, y, regressors, operators, start, max_iterations, progress)
@@ -572,18 +573,36 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
     else:
         finalists, iterations, reference = [initial], 0, None
     fits = {}
-    for count in counts:
-        count_starts = finalists if reference is None else _carried(finalists, reference, count)
-        fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress)
+    several = len(counts) > 1
+    order = sorted(counts, key=lambda count: count != reference)  # the reference count first
+    for count in order:
+        if reference is None:
+            count_starts = finalists
+        elif count == reference:
+            count_starts = list(finalists)
+        else:  # the other counts start from where the reference count's finalists led
+            count_starts = _carried([_start_from(fits[reference][0])], reference, count)
+        fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress,
+                                 refine=not several)
+    fits = {count: fits[count] for count in counts}
     costs = {count: found.cost for count, (found, _) in fits.items()}
     searches = {count: found for count, (found, _) in fits.items()}
     chosen, params, coefficients, refused, by_count = _well_scaled_choice(u, y, matrix, searches, output_unit)
     found = fits[chosen][0]
     iterations += sum(spent for _, spent in fits.values())
+    compared = thinned(u, SCREEN_SAMPLES).size if several else u.size  # the samples the counts were compared on
+    if compared < u.size:
+        found = _search(u, y, matrix, chosen, _start_from(found), int(max_iterations), progress)
+        iterations += found.iterations
+        params, coefficients = _final_parameters(u, y, matrix, chosen, found, output_unit)
+        if scale_problems(params, chosen, y):
+            raise InputError(f"the fit found no well-scaled GPI parameters for these data ({chosen} operators: "
+                             f"{', '.join(scale_problems(params, chosen, y))})")
     note = found.message
     if len(costs) > 1:
-        rms = ", ".join(f"{count}: {100 * math.sqrt(cost / u.size) / np.ptp(y):.4g}" for count, cost in costs.items())
-        note += f" Operators chosen: {chosen} (RMS % by count {rms})."
+        rms = ", ".join(f"{count}: {100 * math.sqrt(cost / compared) / np.ptp(y):.4g}" for count, cost in costs.items())
+        where = "" if compared == u.size else f" on a {compared}-sample thinned copy"
+        note += f" Operators chosen: {chosen} (RMS % by count{where} {rms})."
     if refused:
         note += f" Refused as badly scaled: {' / '.join(refused)}."
     result = _result(u, y, matrix, chosen, found, params, coefficients, iterations, time.perf_counter() - clock,

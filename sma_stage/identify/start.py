@@ -19,6 +19,7 @@ from sma_stage.model.identified import IdentifiedModel, Start
 
 TURNING_GRID_POINTS = 9  # turning points tried before the free values are polished
 FREE_MAX_EVALUATIONS = 60
+FREE_SAMPLES = 3000  # the free values are fitted on the record's first samples (where a start shows), at most this many
 ELAPSED_LIMIT_FACTOR = 10.0  # a drift's elapsed time before the record: at most this many record lengths
 
 
@@ -60,18 +61,22 @@ def estimate_start(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.n
 
 def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> StartFit:
     """The free start of least SSR: the turning point over a grid, then every free value polished together
-    by bounded least squares from the best grid point."""
+    by bounded least squares from the best grid point, both on the first FREE_SAMPLES samples; its BIC
+    on the whole record."""
     low, high = _bounds(model, t, u)
     held = model.start_state(t, u, Start("held"))
     held_values = _held_values(model, held)
     start_values = np.clip(held_values, low, high)
+    head = slice(0, min(y.size, FREE_SAMPLES))
+    t_head, u_head, y_head = t[head], u[head], y[head]
     grid = np.linspace(low[0], high[0], TURNING_GRID_POINTS)
-    costs = [_fitted(model, t, u, y, Start("free", (turning, *start_values[1:]))).cost for turning in grid]
+    costs = [_fitted(model, t_head, u_head, y_head, Start("free", (turning, *start_values[1:]))).cost
+             for turning in grid]
     start_values[0] = grid[int(np.argmin(costs))]
     scale = max(float(np.ptp(y)), np.finfo(float).tiny)
 
     def residual(values: np.ndarray) -> np.ndarray:
-        return (model.predict_from(t, u, Start("free", tuple(values))) - y) / scale
+        return (model.predict_from(t_head, u_head, Start("free", tuple(values))) - y_head) / scale
 
     interior = np.clip(start_values, low + 1e-9 * (high - low), high - 1e-9 * (high - low))
     solution = least_squares(residual, interior, bounds=(low, high), method="trf", x_scale="jac",

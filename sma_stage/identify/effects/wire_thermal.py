@@ -13,6 +13,7 @@ import numpy as np
 
 from sma_stage.identify.effects.base import (
     FITTED_STARTS,
+    SCREEN_SAMPLES,
     THOROUGH_STARTS,
     Candidate,
     EffectFit,
@@ -20,6 +21,7 @@ from sma_stage.identify.effects.base import (
     NotFitted,
     Progress,
     Refits,
+    even_indices,
     finish_fit,
     fit_or_none,
     lag_range,
@@ -82,10 +84,17 @@ class WireThermalEffect(Candidate):
     @staticmethod
     def _sweep(t: np.ndarray, u: np.ndarray, y: np.ndarray, first: EffectFit, taus: list[float],
                reference: float) -> tuple[FitResult, list[float]] | None:
+        """The sweeps on a copy thinned to SCREEN_SAMPLES, then the GPI refitted on all samples (thorough)."""
         low, high = lag_range(t)
-        spec = _wires(*taus, reference)
-        gpi = fit_or_none(spec.transform(t, u, spec.start_state(t, u, first.start))[0], y, first.operators,
-                          first.gpi_parameters, first.gpi_parameters.output_unit)
+        screen = even_indices(t.size, SCREEN_SAMPLES)
+        t_s, u_s, y_s = t[screen], u[screen], y[screen]
+
+        def inputs(pair: list[float], t: np.ndarray, u: np.ndarray) -> np.ndarray:
+            spec = _wires(*pair, reference)
+            return spec.transform(t, u, spec.start_state(t, u, first.start))[0]
+
+        unit = first.gpi_parameters.output_unit
+        gpi = fit_or_none(inputs(taus, t_s, u_s), y_s, first.operators, first.gpi_parameters, unit)
         if gpi is None:
             return None
         for _ in range(SWEEPS):
@@ -93,16 +102,18 @@ class WireThermalEffect(Candidate):
                 def transform(value: float, wire: int = wire) -> np.ndarray:
                     pair = list(taus)
                     pair[wire] = value
-                    spec = _wires(*pair, reference)
-                    return spec.transform(t, u, spec.start_state(t, u, first.start))[0]
+                    return inputs(pair, t_s, u_s)
 
-                fits = Refits(transform, y, gpi)
+                fits = Refits(transform, y_s, gpi)
                 search = (max(taus[wire] / SPREAD, low), min(taus[wire] * SPREAD, high))
                 taus[wire] = math.exp(scalar_search(fits.cost, *search, SWEEP_GRID_POINTS, thorough=False))
-                gpi = fits.fit(taus[wire], thorough=True)
+                gpi = fits.fit(taus[wire], thorough=screen.size == t.size)
                 if gpi is None:
                     return None
-        return gpi, taus
+        if screen.size < t.size:
+            whole = Refits(lambda value: inputs(taus, t, u), y, gpi)
+            gpi = whole.fit(taus[0], thorough=True)
+        return (gpi, taus) if gpi is not None else None
 
 
 def _wires(tau_a_s: float, tau_b_s: float, reference_a: float) -> Effect:
