@@ -578,9 +578,9 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
     for count in order:
         if reference is None:
             count_starts = finalists
-        elif count == reference:
-            count_starts = list(finalists)
-        else:  # the other counts start from where the reference count's finalists led
+        elif count == reference or thinned(u, SCREEN_SAMPLES).size == u.size:
+            count_starts = _carried(finalists, reference, count)
+        else:  # a large record: the other counts start from where the reference count's finalists led
             count_starts = _carried([_start_from(fits[reference][0])], reference, count)
         fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress,
                                  refine=not several)

@@ -19,7 +19,6 @@ from scipy.optimize import minimize_scalar
 
 from sma_stage.errors import InputError
 from sma_stage.identify.fit import (
-    DEFAULT_MAX_ITERATIONS,
     FitResult,
     choose_operator_count,
     fit_gpi,
@@ -38,7 +37,6 @@ MIN_LAG_SAMPLES = 0.25  # smallest tau or delay, in sample periods: the samples 
 BOUND_MARGIN = 0.01  # a tau or delay found within 1 % of that bound is refused (not resolved)
 FITTED_STARTS = ("rest", "held")  # how an identification record may start, tried by every input effect's fit
 THOROUGH_STARTS = 2  # data-derived starts of the cold fit in a thorough evaluation
-SEARCH_MAX_ITERATIONS = 40  # each GPI fit of the wide search: it only ranks x
 SEARCH_SAMPLES = 500  # the wide search of tau or d runs on a thinned copy of about this many samples
 SCREEN_SAMPLES = 3000  # the fine search on one of about this many; the GPI is then refitted on all samples
 NARROW_FACTOR = 1.1  # after a change of operator count, x is searched again within x / 1.1 .. 1.1 x
@@ -132,12 +130,11 @@ def check_record(t: np.ndarray, u: np.ndarray, y: np.ndarray | None = None) -> t
 
 
 def fit_or_none(v: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIParameters | None, unit: str,
-                regressors: np.ndarray | None = None, starts: int | None = None,
-                max_iterations: int = DEFAULT_MAX_ITERATIONS) -> FitResult | None:
+                regressors: np.ndarray | None = None, starts: int | None = None) -> FitResult | None:
     """fit_gpi, or None where the data cannot be fitted (e.g. a delay so long that the output falls as
     the input rises)."""
     result = attempt("GPI", lambda: fit_gpi(v, y, operators=operators, initial=initial, output_unit=unit,
-                                            regressors=regressors, starts=starts, max_iterations=max_iterations))
+                                            regressors=regressors, starts=starts))
     return None if isinstance(result, NotFitted) else result
 
 
@@ -157,12 +154,10 @@ class Refits:
     """GPI fits (one operator count) on a transformed input u_of(x), x the effect parameter. Each is
     warm-started from the fit at the nearest x so far (the optimum moves smoothly with x) and, when
     thorough, also from fit_gpi's data-derived starts (a start far away can sit in the basin where the
-    plain GPI absorbed the effect); the lower cost is kept. max_iterations: each fit's (fewer for a
-    search that only compares x, whose optimum is then polished)."""
+    plain GPI absorbed the effect); the lower cost is kept."""
 
-    def __init__(self, u_of: Callable[[float], np.ndarray], y: np.ndarray, base: FitResult,
-                 max_iterations: int = DEFAULT_MAX_ITERATIONS) -> None:
-        self.u_of, self.y, self.base, self.max_iterations = u_of, y, base, max_iterations
+    def __init__(self, u_of: Callable[[float], np.ndarray], y: np.ndarray, base: FitResult) -> None:
+        self.u_of, self.y, self.base = u_of, y, base
         self.fits: dict[float, FitResult | None] = {}
 
     def fit(self, value: float, thorough: bool = False) -> FitResult | None:
@@ -185,7 +180,7 @@ class Refits:
 
     def _try(self, value: float, initial: GPIParameters | None, starts: int | None = None) -> FitResult | None:
         return fit_or_none(self.u_of(value), self.y, self.base.operators, initial,
-                           self.base.parameters.output_unit, starts=starts, max_iterations=self.max_iterations)
+                           self.base.parameters.output_unit, starts=starts)
 
 
 def scalar_search(cost: Callable[[float, bool], float], low: float, high: float, grid_points: int,
@@ -193,12 +188,11 @@ def scalar_search(cost: Callable[[float, bool], float], low: float, high: float,
     """The log x in [log low, log high] of least cost(log x, thorough): a log-spaced grid, then a bounded
     Brent search between the best grid point's neighbours (to COARSE_LOG_TOLERANCE when thorough, else
     to LOG_TOLERANCE). The GPI fit has local minima, so a wide search needs thorough grid evaluations: a
-    local polish alone stops where the plain GPI absorbed the effect. Brent's evaluations are warm-started
-    from the nearest fit so far, which the thorough grid put in the right basin."""
+    local polish alone stops where the plain GPI absorbed the effect."""
     grid = np.linspace(math.log(low), math.log(high), grid_points)
     costs = [cost(x, thorough) for x in grid]
     best = int(np.argmin(costs))
-    x, fun = _brent(lambda x: cost(x, False), grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)],
+    x, fun = _brent(lambda x: cost(x, thorough), grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)],
                     COARSE_LOG_TOLERANCE if thorough else LOG_TOLERANCE)
     return float(x) if fun <= costs[best] else float(grid[best])
 
@@ -270,8 +264,7 @@ class InputTransformEffect(Candidate):
         keep = even_indices(t.size)
         searched = []
         for start in distinct_starts(self, t, u, starts):
-            wide = Refits(lambda x, start=start: self.transform(t[keep], u[keep], x, start), y[keep], base,
-                          SEARCH_MAX_ITERATIONS)
+            wide = Refits(lambda x, start=start: self.transform(t[keep], u[keep], x, start), y[keep], base)
             log_value = scalar_search(wide.cost, *bounds, SEARCH_GRID_POINTS)
             searched.append((wide.cost(log_value), start, log_value, wide.fit(math.exp(log_value)) or base))
         _, start, log_value, found = min(searched, key=lambda entry: entry[0])
