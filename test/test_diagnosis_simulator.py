@@ -19,20 +19,28 @@ def diagnosed(sensor_delay_s: float, order: str):
     return diagnose(*records(Effects(sensor_delay_s=sensor_delay_s), order))
 
 
-def test_names_the_simulators_own_thermal_lag_and_nothing_more():
+THERMAL = ("thermal_lag", "wire_thermal")
+
+
+def time_constants(result) -> list[float]:
+    """The thermal time constants the diagnosis found [s] (one for thermal_lag, one per wire)."""
+    return [value for name, value in result.parameters.items() if name in ("tau_s", "tau_a_s", "tau_b_s")]
+
+
+def test_names_the_simulators_own_wire_heating_and_no_delay():
+    """The simulator's two wires heat and cool: a thermal reading is named first (the single lag or the two
+    wires), with time constants of the order of the wires' own, and no delay, which nothing switched on."""
     result = diagnosed(0.0, "paper")
     rounds = [[(c.effect, c.reason) for c in found.candidates] for found in result.rounds]
-    assert result.effects == ["thermal_lag"], rounds
+    assert result.effect in THERMAL and "delay" not in result.effects, rounds
     tau = StageConfig().thermal_time_constant_s
-    assert 0.5 * tau < result.parameters["tau_s"] < 2.0 * tau, "of the order of the wires' thermal time constant"
+    assert all(0.5 * tau < value < 2.0 * tau for value in time_constants(result)), result.parameters
     assert result.after.rms_pct < 0.75 * result.before.rms_pct
 
 
-def test_names_a_switched_on_sensor_delay_on_top_of_the_lag():
+def test_names_a_switched_on_sensor_delay_on_top_of_the_wire_heating():
     result = diagnosed(SENSOR_DELAY_S, "paper")
     rounds = [[(c.effect, c.reason) for c in found.candidates] for found in result.rounds]
-    assert result.effect == "thermal_lag" and "delay" in result.effects, rounds
+    assert result.effect in THERMAL and "delay" in result.effects, rounds
     assert result.parameters["delay_s"] == pytest.approx(SENSOR_DELAY_S, rel=0.3), "the lag keeps a little of it"
     assert result.after.rms_pct < 0.5 * result.before.rms_pct
-    plain = diagnosed(0.0, "paper")
-    assert "delay" not in plain.effects

@@ -20,6 +20,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
+from sma_stage.identify.effects import EFFECT_NAMES  # noqa: E402
 from sma_stage.model import IdentifiedModel, load_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, find_executable, wait_for  # noqa: E402

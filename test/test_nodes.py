@@ -33,6 +33,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from sma_stage.cli import main as cli_main  # noqa: E402
 from sma_stage.errors import InputError  # noqa: E402
+from sma_stage.identify.effects import EFFECT_NAMES  # noqa: E402
 from sma_stage.io import read_bag, read_csv  # noqa: E402
 from sma_stage.model import Effect, GPIInverseStream, GPIParameters, IdentifiedModel, load_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402

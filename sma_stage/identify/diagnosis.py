@@ -37,7 +37,6 @@ from sma_stage.identify.effects import (
 )
 from sma_stage.identify.fit import (
     OPERATOR_CANDIDATES,
-    OPERATOR_MARGIN,
     SCREEN_SAMPLES,
     FitResult,
     fit_gpi,
@@ -56,6 +55,7 @@ VALIDATION_MARGIN = 0.10  # the validation RMS must fall by at least 10 % in the
 LATER_VALIDATION_MARGIN = 0.03  # and by at least 3 % in a later round
 REFINE_SWEEPS = 1  # backfitting sweeps over the added effects after each later round
 EXCLUSIVE = {"thermal_lag": ("wire_thermal",), "wire_thermal": ("thermal_lag",)}  # one thermal reading per model
+COUNT_FIT_MARGIN = 0.10  # operator counts whose identification RMS is within 10 % of the best are admitted
 COUNT_TIE = 0.01  # validation RMS within 1 % of the lowest: the smaller operator count is kept
 RECOUNTED = 2  # accepted candidates (best validation first) whose operator count is chosen again
 # Which residual test points at which effect (the strongest first; ties keep this order).
@@ -459,9 +459,11 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     the GPI refitted at every count of OPERATOR_CANDIDATES with the effects held (from the model's GPI and
     from a cold fit of every count, the better kept; on a copy thinned to SCREEN_SAMPLES, the chosen count
     then refitted on all samples). Every count has the same parameters, so the BIC only ranks their fit
-    to the identification data; it admits the counts whose RMS error there is within OPERATOR_MARGIN of
-    the best (fit_gpi's margin: a BIC within 2 N ln(1 + OPERATOR_MARGIN)), and of those the held-out
-    error chooses: the lowest validation RMS, the smaller count on a near-tie (COUNT_TIE). Returns the
+    to the identification data, where more operators fit a little closer; the held-out error says which
+    of them generalises. The BIC admits the counts whose RMS error there is within COUNT_FIT_MARGIN of
+    the best (a BIC within 2 N ln(1 + COUNT_FIT_MARGIN): a fit that failed is not chosen for luck on the
+    validation record), and of those the lowest validation RMS wins, the smaller count on a near-tie
+    (COUNT_TIE). Returns the
     chain with that count and the report's "operators" block (the choice, the runner-up, every count's
     BIC and validation RMS)."""
     t_i, u_i, y_i = ident
@@ -486,7 +488,7 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     rows = {count: {"bic": option.bic, "validation_rms_pct": valid.errors(
         valid.predict(option.model, option.start).predicted).rms_pct} for count, option in options.items()}
     best_bic = min(row["bic"] for row in rows.values())
-    margin = 2.0 * y_i.size * math.log1p(OPERATOR_MARGIN)
+    margin = 2.0 * y_i.size * math.log1p(COUNT_FIT_MARGIN)
     admissible = sorted((count for count, row in rows.items() if row["bic"] <= best_bic + margin),
                         key=lambda count: (rows[count]["validation_rms_pct"], count))
     lowest = rows[admissible[0]]["validation_rms_pct"]
@@ -554,6 +556,9 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
             break
         chain, current = found.winner.model, found.winner.validation
         _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
+        if operators is None and chain.composable:
+            chain, _ = count_by_held_out(chain, ident_record, validation, progress)
+            current = validation.errors(validation.predict(chain.model, chain.start).predicted)
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
     counts: dict[str, object] = {}

@@ -9,6 +9,7 @@ import time
 import numpy as np
 
 from sma_stage.identify.effects.base import (
+    BOUND_MARGIN,
     FITTED_STARTS,
     SEARCH_GRID_POINTS,
     THOROUGH_STARTS,
@@ -59,12 +60,16 @@ class DriftEffect(Candidate):
     def _fit_at(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, start: GPIParameters, count: int,
                 plain_count: int, started: float, progress: Progress) -> EffectFit:
         """Linear drift, then linear drift and creep, at one operator count; the lower BIC is kept (the
-        linear drift alone where the creep cannot be fitted)."""
+        linear drift alone where the creep cannot be fitted, or where its time constant ends at a bound of
+        its search, which the record does not resolve)."""
         unit = start.output_unit
         linear = self._refit(u, y, count, start, unit, drift_regressors(t - t[0], None))
         if linear is None:
             raise NotFitted(f"drift: the GPI with a linear drift cannot be fitted at {count} operators")
         tau_c = _creep_time_constant(t, y, linear)
+        low, high = (fraction * float(t[-1] - t[0]) for fraction in CREEP_TAU_RANGE_FRACTION)
+        if not (1.0 + BOUND_MARGIN) * low < tau_c < high / (1.0 + BOUND_MARGIN):  # at a bound: not resolved
+            return self._finish(t, y, linear, None, plain_count + 1, started, progress)
         creep = self._refit(u, y, count, linear.parameters, unit, drift_regressors(t - t[0], tau_c))
         samples, k = y.size, plain_count
         if creep is not None and (information_criterion(creep.cost, samples, k + 3)
@@ -104,4 +109,6 @@ def _creep_time_constant(t: np.ndarray, y: np.ndarray, linear: FitResult) -> flo
 
     low, high = (fraction * duration for fraction in CREEP_TAU_RANGE_FRACTION)
     return math.exp(scalar_search(cost, low, high, SEARCH_GRID_POINTS, thorough=False))
+
+
 EFFECT = DriftEffect()
