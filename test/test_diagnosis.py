@@ -58,7 +58,7 @@ def test_diagnose_adds_a_second_effect_in_a_later_round():
     assert sorted(result.effects) == ["drift", "thermal_lag"], rounds
     assert result.effect == result.effects[0]
     assert result.after.rms_pct <= FLOOR_FACTOR * case.validation.noise_floor_pct
-    assert result.rounds[1].before == result.rounds[0].winner.validation
+    assert result.rounds[1].before.rms_pct <= result.rounds[0].winner.validation.rms_pct, "the count step only helps"
     assert result.after.rms_pct < result.rounds[1].before.rms_pct
     assert result.parameters["tau_s"] == pytest.approx(case.truth["tau_s"], rel=PARAMETER_TOLERANCE)
     assert result.parameters["drift_m_per_s"] == pytest.approx(case.truth["drift_m_per_s"], rel=0.1)
