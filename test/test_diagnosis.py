@@ -63,7 +63,8 @@ def test_diagnose_adds_a_second_effect_in_a_later_round():
     assert result.parameters["tau_s"] == pytest.approx(case.truth["tau_s"], rel=PARAMETER_TOLERANCE)
     assert result.parameters["drift_m_per_s"] == pytest.approx(case.truth["drift_m_per_s"], rel=0.1)
     t, u = case.validation.t, case.validation.u
-    assert np.array_equal(result.chain.predict(t, u), result.validation_predicted_after)
+    start = result.starts["validation"].start
+    assert np.array_equal(result.chain.model.predict_from(t, u, start), result.validation_predicted_after)
     block = result.to_dict()
     assert block["effects"] == result.effects and [r["added"] for r in block["rounds"]][:2] == result.effects
 

@@ -56,7 +56,7 @@ def test_real_piezo_data_is_identified_better_than_by_the_plain_gpi():
     """Measured data: identified on a burst that starts from a hold, validated on one that starts mid-loop.
     The model with what the diagnosis adds, and the start it finds, beats the plain GPI on every sample."""
     ident, valid = _piezo()
-    found = identify_recording(ident, validation=valid, diagnose_rounds=2, output_unit="sensor")
+    found = identify_recording(ident, validation=valid, diagnose_rounds=1, output_unit="sensor")
     diagnosis = found.diagnosis
     assert diagnosis is not None, found.warnings
     assert diagnosis.after.rms_pct < diagnosis.before.rms_pct

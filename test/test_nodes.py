@@ -695,7 +695,7 @@ class FakeStage:
 
 
 def refit_answer(ros: Ros, probe: Node):
-    return ros.call(probe, Trigger, "identification/refit", timeout=30.0)
+    return ros.call(probe, Trigger, "identification/refit", timeout=120.0)  # a refit with its diagnosis: 10-40 s on two loaded cores
 
 
 def test_identification_refuses_a_refit_without_enough_data(ros):

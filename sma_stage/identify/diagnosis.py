@@ -453,11 +453,11 @@ def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chai
     return chain if fit is chain.last else others.then(fit)
 
 
-def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: Progress = None
-                      ) -> tuple[Chain, dict[str, object]]:
+def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: Progress = None,
+                      cold: bool = True) -> tuple[Chain, dict[str, object]]:
     """The operator count of the model chosen by the identification BIC and the held-out error together:
-    the GPI refitted at every count of OPERATOR_CANDIDATES with the effects held (from the model's GPI and
-    from a cold fit of every count, the better kept; on a copy thinned to SCREEN_SAMPLES, the chosen count
+    the GPI refitted at every count of OPERATOR_CANDIDATES with the effects held (from the model's GPI and,
+    when cold, from a cold fit of every count, the better kept; on a copy thinned to SCREEN_SAMPLES, the chosen count
     then refitted on all samples). Every count has the same parameters, so the BIC only ranks their fit
     to the identification data, where more operators fit a little closer; the held-out error says which
     of them generalises. The BIC admits the counts whose RMS error there is within COUNT_FIT_MARGIN of
@@ -471,8 +471,8 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     last, unit = chain.last, chain.last.gpi_parameters.output_unit
     keep = thinned(v_i, SCREEN_SAMPLES)
     options: dict[int, Chain] = {last.operators: chain}
-    cold = attempt("GPI", lambda: fit_gpi(v_i[keep], w_i[keep], output_unit=unit))
-    cold_fits = {} if isinstance(cold, NotFitted) else cold.by_count
+    cold_fit = attempt("GPI", lambda: fit_gpi(v_i[keep], w_i[keep], output_unit=unit)) if cold else None
+    cold_fits = cold_fit.by_count if isinstance(cold_fit, FitResult) else {}
     for count in OPERATOR_CANDIDATES:
         if count == last.operators:
             continue
@@ -557,7 +557,7 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
         chain, current = found.winner.model, found.winner.validation
         _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
         if operators is None and chain.composable:
-            chain, _ = count_by_held_out(chain, ident_record, validation, progress)
+            chain, _ = count_by_held_out(chain, ident_record, validation, progress, cold=False)
             current = validation.errors(validation.predict(chain.model, chain.start).predicted)
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
