@@ -65,12 +65,14 @@ def test_real_piezo_data_is_identified_better_than_by_the_plain_gpi():
 
 def test_the_exact_inverse_recovers_the_measured_input_from_the_measured_output():
     """inverse(measured position) against the measured voltage, on the validation burst, from the plain
-    GPI fitted on the identification burst: within a few % of the input's span."""
+    GPI fitted on the identification burst: within a few % of the input's span, over the whole record and
+    once the sensor has settled."""
     ident, valid = _piezo()
     found = identify_recording(ident, output_unit="sensor")
     inverse = GPIInverseStream(found.fit.parameters, found.fit.operators, "exact",
                                input_range=(float(np.min(valid.input)), float(np.max(valid.input))))
     recovered = np.array([inverse.step(value) for value in valid.output])
-    settled = slice(100, None)  # the record's first 0.5 s: the sensor still settling from below the loop
-    error = 100.0 * (recovered[settled] - valid.input[settled]) / np.ptp(valid.input)
-    assert np.sqrt(np.mean(error**2)) < 3.0
+    error = 100.0 * (recovered - valid.input) / np.ptp(valid.input)
+    assert np.sqrt(np.mean(error**2)) < 4.0  # the whole record (measured: 3.37 %)
+    settled = slice(100, None)  # after its first 0.5 s, the sensor settling from below the loop
+    assert np.sqrt(np.mean(error[settled] ** 2)) < 3.0  # measured: 2.65 %
