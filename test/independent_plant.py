@@ -1,6 +1,7 @@
 """Test-only records made without any of sma_stage: a hysteretic stage with one effect, started NOT from rest.
 
-Nothing here imports the package. The hysteresis is written out from its definition (play operators
+The generator imports nothing from the package (only `main`, which prints the table, calls `diagnose`). The
+hysteresis is written out from its definition (play operators
 between two tanh envelopes, weights decaying with the threshold); the effects are simulated as a
 continuous plant would run them, on a grid FINE times finer than the recorded one:
 - `thermal_lag`: the hysteresis sees the wire temperature, tau T' = u - T (classical fourth-order
