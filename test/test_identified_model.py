@@ -9,6 +9,7 @@ import yaml
 
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIParameters, IdentifiedModel, forward, load_model_file
+from sma_stage.model.identified import Start
 from sma_stage.signals import paper_identification_signal
 
 STAGE = GPIParameters(a1=0.5e-3, a2=0.6, a3=0.1, a4=0.0, a5=0.5e-3, a6=0.6, a7=-0.2, a8=0.05e-3,
@@ -19,6 +20,10 @@ EFFECTS = {
     "thermal_lag (heating)": (Effect("thermal_lag", {"tau_s": 9.7, "joule_reference_a": 4.8}),),
     "delay": (Effect("delay", {"delay_s": 3.25}),),
     "rate": (Effect("rate", {"rate_gain_s_per_A": 2.5}),),
+    "rate (additive)": (Effect("rate", {"rate_shift_m_s_per_A": 2e-6}),),
+    "wire_thermal": (Effect("wire_thermal", {"tau_a_s": 8.0, "tau_b_s": 13.0, "joule_reference_a": 5.0}),),
+    "wire_thermal + delay": (Effect("wire_thermal", {"tau_a_s": 8.0, "tau_b_s": 13.0, "joule_reference_a": 5.0}),
+                             Effect("delay", {"delay_s": 1.5})),
     "drift": (Effect("drift", {"drift_m_per_s": 4e-8}),),
     "drift with creep": (Effect("drift", {"drift_m_per_s": 4e-8, "creep_m": 2e-5, "creep_tau_s": 80.0}),),
     "thermal_lag + delay + drift": (Effect("thermal_lag", {"tau_s": 11.3}), Effect("delay", {"delay_s": 2.0}),
@@ -49,7 +54,7 @@ def test_a_record_continued_from_its_state_equals_the_whole_record(name):
     half = T.size // 2
     head, state = model.run(T[:half], U[:half])
     tail = model.predict(T[half:], U[half:], state)
-    tolerance = 1e-3 if name == "rate" else 1e-12
+    tolerance = 1e-3 if name.startswith("rate") else 1e-12
     assert np.max(np.abs(np.concatenate((head, tail)) - whole)) <= tolerance * np.ptp(whole)
 
 
@@ -87,3 +92,33 @@ def test_an_effect_twice_or_a_state_of_the_wrong_size_is_refused():
     _, state = IdentifiedModel(STAGE, 10).run(T, U)
     with pytest.raises(InputError, match="operator states"):
         IdentifiedModel(STAGE, 11, (), state)
+
+
+@pytest.mark.parametrize("name", ["thermal_lag", "wire_thermal + delay", "thermal_lag + delay + drift"])
+def test_a_held_start_is_the_state_a_long_hold_at_the_first_current_leaves(name):
+    """Start("held") equals running the model, from rest, over a long hold at the record's first current
+    before it (the drift's clock aside: it starts with the record either way)."""
+    model = IdentifiedModel(STAGE, 12, EFFECTS[name])
+    hold_t = np.arange(-2000.0, 0.0, 0.5)
+    _, held_state = model.run(hold_t, np.full(hold_t.size, U[0] if U[0] != 0.0 else 3.0))
+    u = U.copy()
+    if u[0] == 0.0:
+        u[0] = 3.0
+    by_hold = model.predict(T, u, held_state)
+    started = model.predict_from(T, u, Start("held"))
+    drift = model.effect("drift")
+    if drift is not None:
+        by_hold = by_hold - drift.drift_at(T - T[0] + 2000.0) + drift.drift_at(T - T[0])
+    assert np.max(np.abs(started - by_hold)) <= 1e-6 * np.ptp(by_hold)
+
+
+def test_a_free_start_takes_its_values_by_name_and_refuses_a_wrong_count():
+    model = IdentifiedModel(STAGE, 12, EFFECTS["wire_thermal + delay"])
+    assert model.free_start_names == ["gpi_turning_point_a", "wire_thermal.wire_a_a", "wire_thermal.wire_b_a",
+                                      "delay.held_current_a"]
+    state = model.start_state(T, U, Start("free", (-2.0, 4.0, 0.5, 1.0)))
+    assert state.effects[0].values[0] == 4.0 and state.effects[0].values[2] == 0.5
+    with pytest.raises(InputError, match="takes 4 values"):
+        model.start_state(T, U, Start("free", (1.0,)))
+    with pytest.raises(InputError, match="unknown start"):
+        Start("warm")
