@@ -13,7 +13,14 @@ from __future__ import annotations
 
 import math
 
-from sma_stage.model.effects import Effect, EffectState, joule_heating, lag_drive_for, lag_step
+from sma_stage.model.effects import (
+    Effect,
+    EffectState,
+    current_for_heating,
+    joule_heating,
+    lag_drive_for,
+    lag_step,
+)
 
 
 class ThermalState:
@@ -54,9 +61,7 @@ class ThermalState:
 
     def current(self, drive: float) -> float:
         """The current [A] whose drive is `drive`."""
-        if self.reference_a <= 0.0:
-            return drive
-        return math.copysign(math.sqrt(abs(drive) * self.reference_a), drive)
+        return current_for_heating(drive, self.reference_a)
 
     def advance(self, current_a: float, dt_s: float) -> None:
         """Step the states with the current held for dt_s [s]."""

@@ -45,7 +45,7 @@ from sma_stage.identify.fit import (
 )
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
-from sma_stage.identify.start import StartFit, estimate_start
+from sma_stage.identify.start import StartFit, estimate_start, start_fit
 from sma_stage.model.forward import forward
 from sma_stage.model.identified import IdentifiedModel, Start
 from sma_stage.model.parameters import GPIParameters
@@ -309,11 +309,7 @@ class Validation:
     def predict(self, model: IdentifiedModel, identification_start: str) -> StartFit:
         """The model's output over the record, and the start it runs from."""
         if self.scored_from > 0:
-            start = Start(identification_start)
-            predicted = model.predict_from(self.t, self.u, start)
-            residual = self.y - predicted
-            cost = float(residual @ residual)
-            return StartFit(start, predicted, cost, information_criterion(cost, self.y.size, 0), {})
+            return start_fit(model, self.t, self.u, self.y, Start(identification_start))
         return estimate_start(model, self.t, self.u, self.y)
 
     def errors(self, predicted: np.ndarray) -> ErrorMetrics:

@@ -42,8 +42,9 @@ class StartFit:
         return found
 
 
-def _fitted(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray, start: Start,
-            free_count: int = 0) -> StartFit:
+def start_fit(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray, start: Start,
+              free_count: int = 0) -> StartFit:
+    """The model's output from a given start, its SSR and its BIC (free_count: the start's own parameters)."""
     predicted = model.predict_from(t, u, start)
     residual = y - predicted
     cost = float(residual @ residual)
@@ -53,7 +54,7 @@ def _fitted(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray,
 def estimate_start(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray,
                    kinds: tuple[str, ...] = START_KINDS) -> StartFit:
     """The start of least BIC among `kinds` for the record (t [s], u [A], y [output unit]) under the model."""
-    found = {kind: (_free(model, t, u, y) if kind == "free" else _fitted(model, t, u, y, Start(kind)))
+    found = {kind: (_free(model, t, u, y) if kind == "free" else start_fit(model, t, u, y, Start(kind)))
              for kind in kinds}
     best = min(found.values(), key=lambda fit: fit.bic)
     return StartFit(best.start, best.predicted, best.cost, best.bic, {kind: fit.bic for kind, fit in found.items()})
@@ -70,7 +71,7 @@ def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -
     head = slice(0, min(y.size, FREE_SAMPLES))
     t_head, u_head, y_head = t[head], u[head], y[head]
     grid = np.linspace(low[0], high[0], TURNING_GRID_POINTS)
-    costs = [_fitted(model, t_head, u_head, y_head, Start("free", (turning, *start_values[1:]))).cost
+    costs = [start_fit(model, t_head, u_head, y_head, Start("free", (turning, *start_values[1:]))).cost
              for turning in grid]
     start_values[0] = grid[int(np.argmin(costs))]
     scale = max(float(np.ptp(y)), np.finfo(float).tiny)
@@ -81,7 +82,7 @@ def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -
     interior = np.clip(start_values, low + 1e-9 * (high - low), high - 1e-9 * (high - low))
     solution = least_squares(residual, interior, bounds=(low, high), method="trf", x_scale="jac",
                              diff_step=1e-4, max_nfev=FREE_MAX_EVALUATIONS)
-    return _fitted(model, t, u, y, Start("free", tuple(float(v) for v in solution.x)), low.size)
+    return start_fit(model, t, u, y, Start("free", tuple(float(v) for v in solution.x)), low.size)
 
 
 def _held_values(model: IdentifiedModel, held: object) -> np.ndarray:
@@ -126,9 +127,4 @@ def _bounds(model: IdentifiedModel, t: np.ndarray, u: np.ndarray) -> tuple[np.nd
             low.append(0.0)
             high.append(ELAPSED_LIMIT_FACTOR * max(float(t[-1] - t[0]), 1e-12))
     return np.array(low), np.array(high)
-
-
-def start_count(start: Start) -> int:
-    """The parameters a start adds to a fit: its free values (none for rest or held)."""
-    return len(start.values) if start.kind == "free" else 0
 

@@ -62,10 +62,6 @@ class Start:
             raise InputError(f"unknown start {self.kind!r}; known: {', '.join(START_KINDS)}")
         object.__setattr__(self, "values", tuple(float(value) for value in self.values))
 
-    def to_dict(self) -> dict[str, object]:
-        """Plain values for the JSON report."""
-        return {"kind": self.kind, "values": list(self.values)}
-
 
 @dataclass(frozen=True)
 class IdentifiedModel:

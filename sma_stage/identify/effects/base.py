@@ -263,7 +263,7 @@ class InputTransformEffect(Candidate):
         bounds = lag_range(t)
         keep = even_indices(t.size)
         searched = []
-        for start in distinct_starts(self, t, u, starts):
+        for start in distinct_starts(u, starts):
             wide = Refits(lambda x, start=start: self.transform(t[keep], u[keep], x, start), y[keep], base)
             log_value = scalar_search(wide.cost, *bounds, SEARCH_GRID_POINTS)
             searched.append((wide.cost(log_value), start, log_value, wide.fit(math.exp(log_value)) or base))
@@ -305,12 +305,9 @@ class InputTransformEffect(Candidate):
                           gpi.predicted, parameter_count, started, start)
 
 
-def distinct_starts(candidate: InputTransformEffect, t: np.ndarray, u: np.ndarray,
-                    starts: tuple[str, ...]) -> tuple[str, ...]:
-    """The starts that give the effect different inputs for this record (held is rest when u[0] is 0)."""
-    if len(starts) > 1 and u[0] == 0.0:
-        return starts[:1]
-    return starts
+def distinct_starts(u: np.ndarray, starts: tuple[str, ...]) -> tuple[str, ...]:
+    """The starts that give an input effect different inputs for this record (held is rest when u[0] is 0)."""
+    return starts[:1] if len(starts) > 1 and u[0] == 0.0 else starts
 
 
 def even_indices(samples: int, budget: int = SEARCH_SAMPLES) -> np.ndarray:
