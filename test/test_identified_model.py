@@ -122,3 +122,15 @@ def test_a_free_start_takes_its_values_by_name_and_refuses_a_wrong_count():
         model.start_state(T, U, Start("free", (1.0,)))
     with pytest.raises(InputError, match="unknown start"):
         Start("warm")
+
+
+@pytest.mark.parametrize(("kind", "parameters", "message"), [
+    ("rate", {}, "give rate_gain_s_per_A .multiplicative. or rate_shift_m_s_per_A .additive."),
+    ("wire_thermal", {"tau_a_s": 1.0, "tau_b_s": 2.0, "joule_reference_a": 0.0}, "joule_reference_a must be above 0"),
+    ("wire_thermal", {"tau_a_s": -1.0, "tau_b_s": 2.0, "joule_reference_a": 5.0}, "'tau_a_s' must be at least 0"),
+    ("wire_thermal", {"tau_a_s": 1.0, "joule_reference_a": 5.0}, "'tau_b_s' is missing"),
+])
+def test_a_bad_new_effect_is_refused_in_one_line(kind, parameters, message):
+    with pytest.raises(InputError, match=message) as refused:
+        Effect(kind, parameters)
+    assert "\n" not in str(refused.value)
