@@ -24,6 +24,7 @@ setup(
         "console_scripts": [
             "stage_node = sma_stage.nodes.stage_node:main",
             "compensator_node = sma_stage.nodes.compensator_node:main",
+            "stage_and_compensator = sma_stage.nodes.stage_and_compensator:main",
             "identification_node = sma_stage.nodes.identification_node:main",
             "gpi_tool = sma_stage.cli:main",
         ],

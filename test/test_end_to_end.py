@@ -179,6 +179,53 @@ def test_a_child_that_cannot_start_is_reported_with_its_error_line(tmp_path):
     assert find_executable("stage_node").name == "stage_node"
 
 
+def test_stage_and_compensator_run_in_one_process_in_their_namespace(tmp_path):
+    """`stage_and_compensator`: both nodes under the namespace given, each with its own section of the
+    parameter files; a setpoint to the namespace moves the stage; /diagnostics names the stage by its full
+    name (ten stages publish there); SIGTERM ends both with status 0."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    with NodeProcesses(tmp_path, domain) as nodes:
+        nodes.start("stage_and_compensator", {"rate_hz": 50.0},
+                    [CONFIG_DIR / "stage.yaml", CONFIG_DIR / "compensator.yaml"], namespace="/stage_7")
+        with RosClient(domain, "pair_test") as client:
+            positions: list[float] = []
+            client.node.create_subscription(JointState, "/stage_7/joint_states",
+                                            lambda m: positions.append(m.position[0]), STATE_SUBSCRIBE_QOS)
+            diagnostics: list[DiagnosticArray] = []
+            client.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+            client.wait_for_services(["/stage_7/stage/stop", "/stage_7/compensator/reload"], 60.0, nodes.check_running)
+            wanted = {("stage", "/stage_7"), ("compensator", "/stage_7")}
+            wait_for(lambda: wanted <= set(client.node.get_node_names_and_namespaces()), 10.0, "both nodes' names")
+            assert client.get_parameters("/stage_7/compensator", ["rate_hz"])["rate_hz"] == 50.0
+            wait_for(lambda: len(positions) > 10, 30.0, "joint_states", nodes.check_running)
+            wait_for(lambda: diagnostics, 10.0, "/diagnostics", nodes.check_running)
+            assert diagnostics[-1].status[0].name == "/stage_7/stage: sim stage"
+            start = float(np.mean(positions[-5:]))
+            setpoint = client.node.create_publisher(Float64, "/stage_7/setpoint", COMMAND_QOS)
+            wait_for(lambda: client.node.count_subscribers("/stage_7/setpoint") >= 1, 10.0, "the compensator")
+
+            def moved() -> bool:
+                setpoint.publish(Float64(data=start + 1e-4))
+                return float(np.mean(positions[-5:])) - start > 5e-5
+
+            wait_for(moved, 60.0, "the stage to move toward the setpoint", nodes.check_running, poll_s=0.05)
+        exits = nodes.stop_all()
+    assert exits == {"/stage_7/stage_and_compensator": 0}, exits
+
+
+def test_a_pair_whose_compensator_cannot_start_exits_with_its_error_line(tmp_path):
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    with NodeProcesses(tmp_path, domain) as nodes:
+        process = nodes.start("stage_and_compensator", {"rate_hz": 50.0, "kp": -1.0},
+                              [CONFIG_DIR / "stage.yaml", CONFIG_DIR / "compensator.yaml"])
+        process.popen.wait(60)
+        with pytest.raises(ValueError, match=r"stage_and_compensator exited with status 2: \[ERROR\] .*"
+                                             r"\[compensator\]: cannot start: parameter 'kp'"):
+            nodes.check_running()
+
+
 def test_a_child_dies_with_its_parent(tmp_path):
     """A parent killed without cleaning up (SIGKILL) takes its node process with it (Linux)."""
     script = (f"import sys, time; from pathlib import Path; from sma_stage.nodes.launch import NodeProcesses; "

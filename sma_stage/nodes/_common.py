@@ -16,6 +16,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
+from rclpy.context import Context
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -236,21 +237,31 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
     executor_kind "events": rclpy's EventsExecutor (C++; a third to a half of the SingleThreadedExecutor's
     CPU per message, bench/README.md), "single": the SingleThreadedExecutor.
     """
+    return run_nodes([make_node], args, executor_kind)
+
+
+def run_nodes(makers: Sequence[Callable[..., Node]], args: Sequence[str] | None = None,
+              executor_kind: str = "events") -> int:
+    """run_node for several nodes in one process and one executor (built in order, destroyed in reverse), as
+    a C++ component container holds them; each takes its own section of a parameter file by its name."""
     try:
         rclpy.init(args=args)
     except Exception as error:  # noqa: BLE001 -- rcl reports a bad --ros-args or params file this way
         print(f"error: cannot start ROS: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
-    node = executor = None
+    nodes: list[Node] = []
+    executor = None
+    building = makers[0]
     try:
-        executor = _make_executor(executor_kind)
-        node = make_node()
-        executor.add_node(node)
+        executor = make_executor(executor_kind)
+        for building in makers:
+            nodes.append(building())
+            executor.add_node(nodes[-1])
         gc.collect()
         gc.freeze()  # what start-up built lives on: the collector's passes stop walking it
-        _spin(executor)
+        spin(executor)
     except (InputError, ParameterException) as error:
-        name = getattr(make_node, "NODE_NAME", "sma_stage")
+        name = getattr(building, "NODE_NAME", "sma_stage")
         rclpy.logging.get_logger(name).error(f"cannot start: {' '.join(str(error).split())}")
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -262,7 +273,7 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
     finally:
         if executor is not None:
             executor.shutdown(timeout_sec=1.0)
-        if node is not None:
+        for node in reversed(nodes):
             close = getattr(node, "close", None)
             if close is not None:
                 close()
@@ -271,22 +282,24 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
     return 0
 
 
-def _make_executor(kind: str) -> object:
+def make_executor(kind: str, context: Context | None = None) -> object:
+    """An executor of the kind named in EXECUTORS, on context (the default context when None)."""
     if kind == "single":
-        return SingleThreadedExecutor()
+        return SingleThreadedExecutor(context=context)
     if kind == "events":
         from rclpy.experimental import EventsExecutor
 
-        return EventsExecutor()
+        return EventsExecutor(context=context)
     raise InputError(f"executor must be one of {', '.join(EXECUTORS)}, got {kind!r}")
 
 
-def _spin(executor: object) -> None:
+def spin(executor: object, context: Context | None = None) -> None:
+    """Spin executor until its context (the default context when None) shuts down."""
     if isinstance(executor, SingleThreadedExecutor):
         executor.spin()
         return
     never = Future()
-    while rclpy.ok():  # EventsExecutor.spin() busy-waits in rclpy 7.1.x; this call does not
+    while rclpy.ok(context=context):  # EventsExecutor.spin() busy-waits in rclpy 7.1.x; this call does not
         executor.spin_until_future_complete(never, timeout_sec=SPIN_SLICE_S)
 
 

@@ -186,28 +186,37 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str,
 
 
 class RosClient:
-    """A node of this process in a private rclpy context, spun by a background executor."""
+    """A node of this process in a private rclpy context, spun by a background executor.
 
-    def __init__(self, domain_id: int, name: str = "sma_client", use_sim_time: bool = False) -> None:
+    executor_kind: as the nodes' (`_common.EXECUTORS`); "events" costs a probe that receives many messages a
+    second a third to a half of the CPU.
+    """
+
+    def __init__(self, domain_id: int, name: str = "sma_client", use_sim_time: bool = False,
+                 executor_kind: str = "single") -> None:
         import rclpy
         from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
         from rclpy.parameter import Parameter
+
+        from sma_stage.nodes._common import make_executor
 
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = Node(name, context=self.context,
                          parameter_overrides=[Parameter("use_sim_time", value=use_sim_time)])
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor_kind = executor_kind
+        self.executor = make_executor(executor_kind, self.context)
         self.executor.add_node(self.node)
         self._clients: dict[tuple[object, str], Any] = {}
         self._thread = threading.Thread(target=self._spin, name="ros-client", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
+        from sma_stage.nodes._common import spin
+
         try:
-            self.executor.spin()
+            spin(self.executor, self.context)
         except Exception:  # noqa: BLE001 -- the context was shut down under a callback while closing
             if self.context.ok():
                 raise
@@ -299,7 +308,9 @@ class RosClient:
         return {name: parameter_value_to_python(value) for name, value in zip(names, response.values, strict=True)}
 
     def close(self) -> None:
-        """Stop the executor and shut the context down."""
+        """Stop the executor and shut the context down (first, for the events executor: that ends its spin)."""
+        if self.executor_kind == "events":
+            self.context.try_shutdown()
         self.executor.shutdown(timeout_sec=2.0)
         self._thread.join(timeout=2.0)
         self.node.destroy_node()

@@ -480,7 +480,7 @@ class StageNode(LifecycleNode):
             **self.timing.values(),
         }
         hardware_id = "; ".join(self.identity.values()) or f"sma_stage {self.backend}"
-        return DiagnosticStatus(level=level, name=f"{self.get_name()}: {self.backend} stage", message=text,
+        return DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: {self.backend} stage", message=text,
                                 hardware_id=hardware_id,
                                 values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
 
