@@ -17,6 +17,7 @@ ENTRY_POINTS = {
     "stage_node": "sma_stage.nodes.stage_node:main",
     "compensator_node": "sma_stage.nodes.compensator_node:main",
     "identification_node": "sma_stage.nodes.identification_node:main",
+    "stage_and_compensator": "sma_stage.nodes.stage_and_compensator:main",
     "gpi_tool": "sma_stage.cli:main",
 }
 BUILD_LEFTOVERS = ("build", "install", "log", f"{PACKAGE}.egg-info")
