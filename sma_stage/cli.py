@@ -7,6 +7,7 @@ document is the only thing on standard output.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -36,6 +37,13 @@ def fraction(text: str) -> float:
     if not 0.0 < value < 1.0:
         raise argparse.ArgumentTypeError(f"expected a number between 0 and 1, got {text!r}")
     return value
+
+
+def worker_count(text: str) -> int:
+    """A whole number from 1 to 64 (argparse type)."""
+    if not text.strip().isdigit() or not 1 <= int(text) <= 64:
+        raise argparse.ArgumentTypeError(f"expected a whole number from 1 to 64, got {text!r}")
+    return int(text)
 
 
 def round_count(text: str) -> int:
@@ -68,6 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_data_arguments(diagnose, validate_required=True)
     diagnose.add_argument("--rounds", type=round_count, default=4,
                           help="rounds of the residual diagnosis, 1-4 (default 4; ~/refit's diagnose_rounds)")
+    diagnose.add_argument("--workers", type=worker_count, default=min(os.cpu_count() or 1, 64),
+                          help="processes fitting a round's candidates at once (default: one per CPU; the "
+                               "result is the same for any count)")
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))
     simulate = commands.add_parser("simulate", help="run the stage simulator offline and write a CSV")
     from sma_stage.commands.simulate import add_arguments

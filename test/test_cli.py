@@ -119,8 +119,10 @@ def test_diagnose_needs_validation_data(tmp_path, capsys):
     (["--holdout", "nan"], "between 0 and 1"),
     (["--holdout", "0.25", "--validate", "v.csv"], "not allowed with"),
     (["--holdout", "0.25", "--rounds", "9"], "from 1 to 4"),
+    (["--holdout", "0.25", "--workers", "0"], "from 1 to 64"),
+    (["--holdout", "0.25", "--workers", "two"], "from 1 to 64"),
 ])
-def test_diagnose_refuses_a_bad_holdout_or_round_count(arguments, message, tmp_path, capsys):
+def test_diagnose_refuses_a_bad_holdout_round_or_worker_count(arguments, message, tmp_path, capsys):
     out = tmp_path / "out"
     with pytest.raises(SystemExit) as exit_status:
         main(["diagnose", str(tmp_path / "ident.csv"), "--out", str(out), *arguments])

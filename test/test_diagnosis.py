@@ -69,6 +69,29 @@ def test_diagnose_adds_a_second_effect_in_a_later_round():
     assert block["effects"] == result.effects and [r["added"] for r in block["rounds"]][:2] == result.effects
 
 
+def test_candidates_fitted_in_worker_processes_give_the_same_diagnosis():
+    case, serial = diagnosed("thermal_lag+drift")
+    ident, valid = case.identification, case.validation
+    parallel = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), workers=2)
+
+    def outcome(result) -> list:
+        return [[(c.effect, c.parameters, c.validation, c.delta_bic, c.accepted, c.reason) for c in found.candidates]
+                + [sorted(found.failures.items())] for found in result.rounds]
+
+    assert parallel.effects == serial.effects and parallel.parameters == serial.parameters
+    assert parallel.after == serial.after
+    assert outcome(parallel) == outcome(serial)
+    assert parallel.chain.model == serial.chain.model
+
+
+def test_workers_must_be_a_positive_whole_number():
+    case, _ = diagnosed("none")
+    ident, valid = case.identification, case.validation
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(InputError, match="workers must be a positive integer"):
+            diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), workers=bad)
+
+
 def test_diagnose_answers_none_when_the_gpi_suffices():
     case, result = diagnosed("none")
     assert result.effect == "none", [(c.effect, c.delta_bic, c.validation.rms_pct) for c in result.candidates]

@@ -69,7 +69,7 @@ def run_diagnose(args: argparse.Namespace) -> dict:
         valid = read_data(args.validate, args) if args.validate else None
         found = identify_recording(data, valid, args.holdout, operators=args.operators,
                                    diagnose_rounds=args.rounds, output_unit=args.unit, progress=progress_line,
-                                   source=str(args.data))
+                                   source=str(args.data), workers=args.workers)
         if found.diagnosis is None:
             raise InputError(found.warnings[0] if found.warnings else "the diagnosis did not run")
         write_outputs(run.staging, found, "GPI fit and residual diagnosis")

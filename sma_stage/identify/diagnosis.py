@@ -16,11 +16,14 @@ or output).
 from __future__ import annotations
 
 import math
+import multiprocessing
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from sma_stage.errors import InputError
 from sma_stage.identify.effects import (
@@ -357,8 +360,89 @@ def _above_noise(chain: Chain, effect: str, ident: Record, reason: str) -> tuple
     return True, reason
 
 
+def _judged(name: str, chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics, margin: float,
+            v_i: np.ndarray, w_i: np.ndarray, base: FitResult, starts: tuple[str, ...],
+            progress: Progress = None) -> CandidateResult | NotFitted:
+    """Candidate `name` fitted on (t, v_i, w_i), what the chain leaves of the identification record, from
+    base, and judged on top of the chain; NotFitted when it cannot be fitted."""
+
+    def judged() -> CandidateResult:
+        fit = fit_effect(name, ident[0], v_i, w_i, base, progress, starts)
+        return _candidate(chain, fit, ident, valid, before, fit.seconds, margin, progress)
+
+    return attempt(name, judged)
+
+
+def _recounted(leader: CandidateResult, chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics,
+               margin: float, v_i: np.ndarray, w_i: np.ndarray, progress: Progress = None
+               ) -> CandidateResult | NotFitted:
+    """An accepted candidate with its operator count chosen again, judged again when the count changed."""
+
+    def recounted() -> CandidateResult:
+        fit = recount_effect(leader.fit, ident[0], v_i, w_i, progress)
+        if fit is leader.fit:
+            return leader
+        return _candidate(chain, fit, ident, valid, before, leader.seconds + fit.seconds, margin, progress)
+
+    return attempt(leader.effect, recounted)
+
+
+class Workers:
+    """Where a round's candidates are fitted: in this process, one after the other (workers 1), or in up to
+    `workers` processes at once (a forkserver's children: safe beside the threads of a ROS node). Each
+    candidate's fit is the same computation either way, so the diagnosis does not depend on the count; a
+    worker's progress messages are not relayed, only each candidate's outcome."""
+
+    def __init__(self, workers: int = 1) -> None:
+        if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+            raise InputError(f"workers must be a positive integer, got {workers!r}")
+        self.workers = int(workers)
+        self._executor: ProcessPoolExecutor | None = None
+
+    def run(self, function: Callable[..., object], jobs: list[tuple], progress: Progress, doing: str) -> list[object]:
+        """[function(*job) for job in jobs], in order; progress is told what starts (`doing` with the job's
+        name in its {}), and in this process what each job reports."""
+        if self.workers == 1 or len(jobs) < 2:
+            results = []
+            for job in jobs:
+                _report(progress, doing.format(_job_name(job)))
+                results.append(function(*job, progress))
+            return results
+        if self._executor is None:
+            context = multiprocessing.get_context("forkserver")
+            context.set_forkserver_preload([__name__])
+            self._executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
+        _report(progress, doing.format(", ".join(_job_name(job) for job in jobs)) + f" in {self.workers} processes")
+        futures = [self._executor.submit(function, *job) for job in jobs]
+        return [future.result() for future in futures]
+
+    def close(self) -> None:
+        """Stop the worker processes (none were started with workers 1)."""
+        if self._executor is not None:
+            self._executor.shutdown(cancel_futures=True)
+            self._executor = None
+
+    def __enter__(self) -> Workers:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def one_blas_thread() -> None:
+    """Run BLAS on one thread in this process. The fits' matrices are small (about 12 x 12 after the QR
+    compression): OpenBLAS's threads cost more than they give, and with Workers they fight over the cores
+    (bench/README.md, Diagnosis)."""
+    threadpool_limits(1, user_api="blas")
+
+
+def _job_name(job: tuple) -> str:
+    first = job[0]
+    return first if isinstance(first, str) else first.effect
+
+
 def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics, tests: ResidualTests,
-                  recount: bool, progress: Progress) -> Round:
+                  recount: bool, progress: Progress, pool: Workers) -> Round:
     """Fit every effect not yet in the chain on top of it and pick the winner (see the selection rule)."""
     first = len(chain.stages) == 1
     margin = VALIDATION_MARGIN if first else LATER_VALIDATION_MARGIN
@@ -371,15 +455,11 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
         v_i, w_i, operators=last.operators, initial=last.gpi_parameters, output_unit=last.gpi_parameters.output_unit))
     if isinstance(base, NotFitted):
         return Round(before, [], {name: f"on top of {' + '.join(chain.effects)}: {base}" for name in names}, None)
+    starts = FITTED_STARTS if first else (chain.start,)
+    jobs = [(name, chain, ident, valid, before, margin, v_i, w_i, base, starts) for name in names]
     candidates, failures = [], {}
-    for name in names:
-        _report(progress, f"fitting candidate {name}" + ("" if first else f" on top of {' + '.join(chain.effects)}"))
-
-        def judged(name: str = name) -> CandidateResult:
-            fit = fit_effect(name, t_i, v_i, w_i, base, progress, FITTED_STARTS if first else (chain.start,))
-            return _candidate(chain, fit, ident, valid, before, fit.seconds, margin, progress)
-
-        outcome = attempt(name, judged)
+    doing = "fitting candidate {}" + ("" if first else f" on top of {' + '.join(chain.effects)}")
+    for name, outcome in zip(names, pool.run(_judged, jobs, progress, doing), strict=True):
         if isinstance(outcome, NotFitted):
             failures[name] = str(outcome)
             _report(progress, f"{name}: not fitted: {outcome}")
@@ -388,15 +468,9 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
         _report(progress, f"{name}: {outcome.reason}")
     if recount:
         leaders = sorted((c for c in candidates if c.accepted), key=lambda c: c.validation.rms_pct)[:RECOUNTED]
-        for leader in leaders:
-
-            def recounted(leader: CandidateResult = leader) -> CandidateResult:
-                fit = recount_effect(leader.fit, t_i, v_i, w_i, progress)
-                if fit is leader.fit:
-                    return leader
-                return _candidate(chain, fit, ident, valid, before, leader.seconds + fit.seconds, margin, progress)
-
-            outcome = attempt(leader.effect, recounted)
+        jobs = [(leader, chain, ident, valid, before, margin, v_i, w_i) for leader in leaders]
+        again = "choosing the operator count of {} again"
+        for leader, outcome in zip(leaders, pool.run(_recounted, jobs, progress, again), strict=True):
             if isinstance(outcome, NotFitted):
                 _report(progress, f"operator count kept: {outcome}")
                 continue
@@ -513,7 +587,7 @@ def _with_gpi(chain: Chain, parameters: GPIParameters, operators: int, v_i: np.n
 
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,
              progress: Progress = None, output_unit: str = "m", max_rounds: int = len(EFFECT_NAMES),
-             scored_from: int = 0) -> Diagnosis:
+             scored_from: int = 0, workers: int = 1) -> Diagnosis:
     """Fit (unless base is given) on ident, test the validation residual, fit and judge every candidate
     effect, add the one that earns its parameters, and search again on top of it, up to max_rounds
     rounds; "none" when the first round adds nothing.
@@ -522,8 +596,17 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     given, the count is then chosen again for the RECOUNTED best accepted candidates (an effect the
     plain GPI lacks also skews the count chosen for it). Later rounds keep the count; after them every
     added effect is fitted again on top of the others (`refine`) and the count chosen once more.
+    workers: processes that fit a round's candidates at once (Workers; the result is the same for any count).
+    BLAS runs on one thread meanwhile (one_blas_thread).
     """
+    with threadpool_limits(1, user_api="blas"):
+        return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, workers)
+
+
+def _diagnose(ident: object, valid: object, base: FitResult | None, operators: int | None, progress: Progress,
+              output_unit: str, max_rounds: int, scored_from: int, workers: int) -> Diagnosis:
     started = time.perf_counter()
+    pool = Workers(workers)
     ident_record = as_record(ident, "identification")
     valid_record = as_record(valid, "validation")
     if not 0 <= scored_from <= valid_record[0].size - 3:
@@ -543,18 +626,19 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
     rounds, current = [], before
-    while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
-        tests = validation.tests(validation.predict(chain.model, chain.start).predicted) if rounds else tests_before
-        found = _search_round(chain, ident_record, validation, current, tests, operators is None and not rounds,
-                              progress)
-        rounds.append(found)
-        if found.winner is None:
-            break
-        chain, current = found.winner.model, found.winner.validation
-        _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
-        if operators is None and chain.composable:
-            chain, _ = count_by_held_out(chain, ident_record, validation, progress, cold=False)
-            current = validation.errors(validation.predict(chain.model, chain.start).predicted)
+    with pool:
+        while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
+            tests = validation.tests(validation.predict(chain.model, chain.start).predicted) if rounds else tests_before
+            found = _search_round(chain, ident_record, validation, current, tests, operators is None and not rounds,
+                                  progress, pool)
+            rounds.append(found)
+            if found.winner is None:
+                break
+            chain, current = found.winner.model, found.winner.validation
+            _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
+            if operators is None and chain.composable:
+                chain, _ = count_by_held_out(chain, ident_record, validation, progress, cold=False)
+                current = validation.errors(validation.predict(chain.model, chain.start).predicted)
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
     counts: dict[str, object] = {}

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
@@ -39,7 +40,7 @@ class Identification:
 
 def identify_recording(record: Series, validation: Series | None = None, holdout_fraction: float | None = None,
                        operators: int | None = None, diagnose_rounds: int = 0, output_unit: str = "m",
-                       progress: Progress = None, source: str = "") -> Identification:
+                       progress: Progress = None, source: str = "", workers: int = 1) -> Identification:
     """Identify the model of a record (t [s], input [A], output [output_unit]).
 
     Validation: a separate record (`validation`, run from an idle stage), or the held-out tail of this one
@@ -47,12 +48,13 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     on the tail), or none. With diagnose_rounds > 0 (and validation data) the residual is diagnosed and
     the model deployed is the GPI with every effect it added; should the diagnosis fail, the plain fit is
     deployed and `warnings` says why in one line. The model's state is where it leaves the record, run from
-    the start the diagnosis found for it (from rest without a diagnosis).
+    the start the diagnosis found for it (from rest without a diagnosis). workers: diagnose's.
     """
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
     ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
-    fit = fit_gpi(ident.input, ident.output, operators=operators, output_unit=output_unit, progress=progress)
+    with threadpool_limits(1, user_api="blas"):  # see diagnosis.one_blas_thread
+        fit = fit_gpi(ident.input, ident.output, operators=operators, output_unit=output_unit, progress=progress)
     errors = _validation_errors(fit, valid, scored_from)
     report = fit_report(fit, errors, validation_source)
     report["samples"] = {"identification": len(ident), "validation": (len(valid) - scored_from) if valid else 0}
@@ -60,7 +62,8 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     if diagnose_rounds > 0 and errors is not None:
         try:
             found = diagnose(ident, valid, base=fit, operators=operators, max_rounds=diagnose_rounds,
-                             scored_from=scored_from, output_unit=fit.parameters.output_unit, progress=progress)
+                             scored_from=scored_from, output_unit=fit.parameters.output_unit, progress=progress,
+                             workers=workers)
         except Exception as error:  # noqa: BLE001 -- the fit stands whatever the diagnosis meets
             warnings.append(f"diagnosis failed, the plain GPI fit is kept: {type(error).__name__}: "
                             f"{' '.join(str(error).split())}")

@@ -72,6 +72,8 @@ IDENTIFICATION_PARAMS = [
     Param("operators", 10, "play operators of the fitted model (0: chosen by the fit)", 0, MAX_OPERATORS),
     Param("diagnose_rounds", 1, "rounds of residual diagnosis after the fit (0: none); the effects it adds are "
           "in the model written and pushed", 0, 4),
+    Param("diagnose_workers", 1, "processes fitting a diagnosis round's candidates at once (1: in this node's "
+          "process; more finish sooner and take CPU from a stage on the same computer)", 1, 64),
     Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
           read_only=True),
@@ -490,7 +492,8 @@ class IdentificationNode(Node):
         found = identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
                                    operators=int(self.values["operators"]) or None,
                                    diagnose_rounds=int(self.values["diagnose_rounds"]),
-                                   source="identification node ~/refit")
+                                   source="identification node ~/refit",
+                                   workers=int(self.values["diagnose_workers"]))
         report = found.report
         report["model_file"] = self.write_model(found.model)
         report["report_file"] = report_path(report["model_file"])
