@@ -200,6 +200,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
     parser.add_argument("--effects", default=",".join(TRUTH), help="comma-separated effects")
+    parser.add_argument("--workers", type=int, default=1, help="diagnose's worker processes (the same result)")
     args = parser.parse_args(argv)
     print("| seed | plant | named | starts (ident, valid) | valid. RMS before % | after % | floor % | after / floor "
           "| max after % | parameters | s |")
@@ -208,7 +209,7 @@ def main(argv: list[str] | None = None) -> None:
         for effect in args.effects.split(","):
             ident, valid = make_records(effect, seed)
             started = time.perf_counter()
-            result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y))
+            result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), workers=args.workers)
             floor = valid.noise_floor_pct
             starts = {record: found.start.kind for record, found in result.starts.items()}
             parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())

@@ -49,6 +49,7 @@ def main(argv: list[str] | None = None) -> None:
 
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("--order", choices=sorted(ORDERS), default="paper")
+    parser.add_argument("--workers", type=int, default=1, help="diagnose's worker processes (the same result)")
     parser.add_argument("--effects", default="none,sensor_delay_s=3,sensor_delay_s=8",
                         help="comma-separated: none or name=value[;name=value] (sma_stage.plant.Effects fields)")
     args = parser.parse_args(argv)
@@ -56,7 +57,7 @@ def main(argv: list[str] | None = None) -> None:
     print("|---|---|---|---|---|")
     for text in args.effects.split(","):
         started = time.process_time()
-        result = diagnose(*records(parse_effects(text), args.order))
+        result = diagnose(*records(parse_effects(text), args.order), workers=args.workers)
         parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
         print(f"| {text} | {', '.join(result.effects) or 'none'} | {parameters} | {result.before.rms_pct:.2f} % -> "
               f"{result.after.rms_pct:.2f} % | {time.process_time() - started:.0f} |", flush=True)

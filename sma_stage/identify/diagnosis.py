@@ -37,6 +37,7 @@ from sma_stage.identify.effects import (
     lowest_cost,
     no_effect,
     recount_effect,
+    refit_effect,
 )
 from sma_stage.identify.fit import (
     OPERATOR_CANDIDATES,
@@ -494,11 +495,11 @@ def refine(chain: Chain, ident: Record, sweeps: int = REFINE_SWEEPS, progress: P
             v_i, w_i = others.data(t_i, u_i, y_i)
             last = others.last
 
-            def refitted(name: str = name, v_i: np.ndarray = v_i, w_i: np.ndarray = w_i,
-                         last: EffectFit = last, kind: str = chain.start) -> EffectFit:
+            def refitted(v_i: np.ndarray = v_i, w_i: np.ndarray = w_i, last: EffectFit = last,
+                         previous: EffectFit = chain.stages[index]) -> EffectFit:
                 start = fit_gpi(v_i, w_i, operators=last.operators, initial=last.gpi_parameters,
                                 output_unit=last.gpi_parameters.output_unit)
-                return fit_effect(name, t_i, v_i, w_i, start, progress, (kind,))
+                return refit_effect(previous, t_i, v_i, w_i, start, progress)
 
             fit = attempt(name, refitted)
             if isinstance(fit, NotFitted):

@@ -70,6 +70,13 @@ def recount_effect(fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray,
     return EFFECTS[fit.effect].recount(fit, t, u, y, progress)
 
 
+def refit_effect(fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+                 progress: Progress = None) -> EffectFit:
+    """The fitted effect fitted again on (t, u, y) from base, near where it was (Candidate.refit)."""
+    t, u, y = check_record(t, u, y)
+    return EFFECTS[fit.effect].refit(fit, t, u, y, base, progress)
+
+
 def no_effect(t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult) -> EffectFit:
     """The plain GPI in the same form as the candidates (no extra parameter)."""
     t, u, y = check_record(t, u, y)

@@ -40,6 +40,7 @@ THOROUGH_STARTS = 2  # data-derived starts of the cold fit in a thorough evaluat
 SEARCH_SAMPLES = 500  # the wide search of tau or d runs on a thinned copy of about this many samples
 SCREEN_SAMPLES = 3000  # the fine search on one of about this many; the GPI is then refitted on all samples
 NARROW_FACTOR = 1.1  # after a change of operator count, x is searched again within x / 1.1 .. 1.1 x
+REFIT_FACTOR = 1.5  # backfitting searches x again within x / 1.5 .. 1.5 x (the other effects moved a little)
 
 Progress = Callable[[str], None] | None
 Fitted = TypeVar("Fitted")
@@ -242,6 +243,13 @@ class Candidate:
                 progress: Progress = None) -> EffectFit:
         raise NotImplementedError
 
+    def refit(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+              progress: Progress = None) -> EffectFit:
+        """The effect fitted again on other data (the record less the other effects, after they changed:
+        backfitting), from base and from where `fit` was, the record starting as fit's did. By default
+        the whole fit; an effect that can search near its last values does."""
+        return self.fit(t, u, y, base, progress, (fit.start,))
+
 
 class InputTransformEffect(Candidate):
     """The GPI driven by what an input effect makes of the current, the effect `spec_of(x)` with one
@@ -292,6 +300,22 @@ class InputTransformEffect(Candidate):
         low, high = lag_range(t)
         narrow = (max(value / NARROW_FACTOR, low), min(value * NARROW_FACTOR, high))
         value = math.exp(scalar_search(fits.cost, *narrow, 3, thorough=False))
+        return self._finish(value, fits.fit(value, thorough=True), y, fit.parameter_count, started, progress,
+                            fit.start)
+
+    def refit(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+              progress: Progress = None) -> EffectFit:
+        """x searched again within x / REFIT_FACTOR .. REFIT_FACTOR x on the SCREEN_SAMPLES copy (warm fits
+        from base), the GPI then refitted on all samples (thorough)."""
+        started = time.perf_counter()
+        low, high = lag_range(t)
+        value = fit.parameters[self.parameter]
+        screen = even_indices(t.size, SCREEN_SAMPLES)
+        fits = Refits(lambda x: self.transform(t[screen], u[screen], x, fit.start), y[screen], base)
+        narrow = (max(value / REFIT_FACTOR, low), min(value * REFIT_FACTOR, high))
+        value = math.exp(scalar_search(fits.cost, *narrow, 3, thorough=False))
+        if screen.size < t.size:
+            fits = Refits(lambda x: self.transform(t, u, x, fit.start), y, fits.fit(value) or base)
         return self._finish(value, fits.fit(value, thorough=True), y, fit.parameter_count, started, progress,
                             fit.start)
 

@@ -56,6 +56,10 @@ class ThermalLagEffect(Candidate):
                 progress: Progress = None) -> EffectFit:
         return self._reading(fit.parameters.get("joule_reference_a")).recount(fit, t, u, y, progress)
 
+    def refit(self, fit: EffectFit, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult,
+              progress: Progress = None) -> EffectFit:
+        return self._reading(fit.parameters.get("joule_reference_a")).refit(fit, t, u, y, base, progress)
+
     def _reading(self, reference_a: float | None) -> InputTransformEffect:
         fixed = {} if reference_a is None else {"joule_reference_a": reference_a}
         return InputTransformEffect(self.name, "tau_s", lambda tau: Effect(self.name, {"tau_s": tau, **fixed}))
