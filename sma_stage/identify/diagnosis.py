@@ -20,6 +20,7 @@ import multiprocessing
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -415,7 +416,12 @@ class Workers:
             self._executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
         _report(progress, doing.format(", ".join(_job_name(job) for job in jobs)) + f" in {self.workers} processes")
         futures = [self._executor.submit(function, *job) for job in jobs]
-        return [future.result() for future in futures]
+        try:
+            return [future.result() for future in futures]
+        except BrokenProcessPool:
+            raise InputError("the diagnosis's worker processes ended before answering (killed, out of memory, "
+                             "or a script that calls diagnose with workers > 1 outside "
+                             "`if __name__ == '__main__':`); use workers=1") from None
 
     def close(self) -> None:
         """Stop the worker processes (none were started with workers 1)."""
