@@ -262,7 +262,8 @@ def node_parameters(settings: EndToEndSettings, work_dir: Path) -> dict[str, dic
     """Overrides of config/<node>.yaml: the stage sped up by time_scale, every node on its simulated /clock
     (so the identification, the lead and the PI loop count simulated seconds); one stage step per control
     period, excitation value and setpoint (step_s simulated); feedforward with the lead limit for following a
-    continuous signal (the validation signal)."""
+    continuous signal (the validation signal); the refit's diagnosis in two processes (nothing drives the stage
+    meanwhile, so the stage's pace does not matter then)."""
     return {
         "stage_node": {"rate_hz": settings.rate_hz, "time_scale": settings.time_scale, "command_timeout": 2.0,
                        "use_sim_time": True},
@@ -273,7 +274,8 @@ def node_parameters(settings: EndToEndSettings, work_dir: Path) -> dict[str, dic
                                 "excite_duration": settings.excite_duration_s,
                                 "excite_period": settings.excite_period_s,
                                 "excite_rate_hz": settings.control_rate_hz,
-                                "record_bag": str(work_dir / "session_bag"), "bag_overwrite": True},
+                                "record_bag": str(work_dir / "session_bag"), "bag_overwrite": True,
+                                "diagnose_workers": 2},
     }
 
 
