@@ -436,11 +436,11 @@ class Workers:
         self.close()
 
 
-def one_blas_thread() -> None:
-    """Run BLAS on one thread in this process. The fits' matrices are small (about 12 x 12 after the QR
-    compression): OpenBLAS's threads cost more than they give, and with Workers they fight over the cores
-    (bench/README.md, Diagnosis)."""
-    threadpool_limits(1, user_api="blas")
+def one_blas_thread() -> threadpool_limits:
+    """Run BLAS on one thread in this process, until the returned context ends (`with one_blas_thread():`)
+    or for good. The fits' matrices are small (about 12 x 12 after the QR compression): OpenBLAS's threads
+    cost more than they give, and with Workers they fight over the cores (bench/README.md, Diagnosis)."""
+    return threadpool_limits(1, user_api="blas")
 
 
 def _job_name(job: tuple) -> str:
@@ -606,7 +606,7 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     workers: processes that fit a round's candidates at once (Workers; the result is the same for any count).
     BLAS runs on one thread meanwhile (one_blas_thread).
     """
-    with threadpool_limits(1, user_api="blas"):
+    with one_blas_thread():
         return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, workers)
 
 

@@ -9,11 +9,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
-from sma_stage.identify.diagnosis import Diagnosis, diagnose
+from sma_stage.identify.diagnosis import Diagnosis, diagnose, one_blas_thread
 from sma_stage.identify.fit import FitResult, fit_gpi, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
@@ -53,7 +52,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
     ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
-    with threadpool_limits(1, user_api="blas"):  # see diagnosis.one_blas_thread
+    with one_blas_thread():
         fit = fit_gpi(ident.input, ident.output, operators=operators, output_unit=output_unit, progress=progress)
     errors = _validation_errors(fit, valid, scored_from)
     report = fit_report(fit, errors, validation_source)
