@@ -29,6 +29,7 @@ from threadpoolctl import threadpool_limits
 from sma_stage.errors import InputError
 from sma_stage.identify.effects import (
     EFFECT_NAMES,
+    EFFECTS,
     FITTED_STARTS,
     EffectFit,
     NotFitted,
@@ -403,7 +404,8 @@ class Workers:
 
     def run(self, function: Callable[..., object], jobs: list[tuple], progress: Progress, doing: str) -> list[object]:
         """[function(*job) for job in jobs], in order; progress is told what starts (`doing` with the job's
-        name in its {}), and in this process what each job reports."""
+        name in its {}), and in this process what each job reports. Processes take the jobs of costlier
+        effects first (Candidate.relative_cost), so that the round's longest fit does not start last."""
         if self.workers == 1 or len(jobs) < 2:
             results = []
             for job in jobs:
@@ -415,9 +417,10 @@ class Workers:
             context.set_forkserver_preload([__name__])
             self._executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
         _report(progress, doing.format(", ".join(_job_name(job) for job in jobs)) + f" in {self.workers} processes")
-        futures = [self._executor.submit(function, *job) for job in jobs]
+        costliest_first = sorted(range(len(jobs)), key=lambda index: -EFFECTS[_job_name(jobs[index])].relative_cost)
+        futures = {index: self._executor.submit(function, *jobs[index]) for index in costliest_first}
         try:
-            return [future.result() for future in futures]
+            return [futures[index].result() for index in range(len(jobs))]
         except BrokenProcessPool:
             raise InputError("the diagnosis's worker processes ended before answering (killed, out of memory, "
                              "or a script that calls diagnose with workers > 1 outside "

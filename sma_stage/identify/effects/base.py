@@ -234,6 +234,8 @@ class Candidate:
     choose the operator count again for the model with the effect."""
 
     name = ""
+    relative_cost = 1.0  # about how many seconds its fit takes on 20,000 samples (bench_diagnosis): the
+    # costliest candidates go to the worker processes first, so that a round ends sooner
 
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
             starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
@@ -257,8 +259,9 @@ class InputTransformEffect(Candidate):
     is one of `starts` (rest, held: see sma_stage.model.identified.Start): the wide search runs from
     each, and the search goes on from the one that fits best."""
 
-    def __init__(self, name: str, parameter: str, spec_of: Callable[[float], Effect]):
+    def __init__(self, name: str, parameter: str, spec_of: Callable[[float], Effect], relative_cost: float = 1.0):
         self.name, self.parameter, self.spec_of = name, parameter, spec_of
+        self.relative_cost = relative_cost
 
     def transform(self, t: np.ndarray, u: np.ndarray, value: float, start: str) -> np.ndarray:
         """What the GPI sees [A] at x = value, the record starting as `start` says."""

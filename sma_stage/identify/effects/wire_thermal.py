@@ -42,6 +42,7 @@ class WireThermalEffect(Candidate):
     turn, each by a bounded search over its log with the GPI refitted (warm) at every value."""
 
     name = "wire_thermal"
+    relative_cost = 9.5
 
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
             starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
