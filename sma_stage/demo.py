@@ -472,7 +472,7 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
             print(f"   {key:40s} not run: {report['compensator']['message']}")
         else:
             still = np.ptp(run.current[np.isfinite(run.current)]) == 0.0
-            print(f"   {key:40s} {run.rms_pct:8.2f} {run.max_pct:8.2f} {run.current_step_rms_pct:11.2f} "
+            print(f"   {key:40s} {run.rms_pct:8.3f} {run.max_pct:8.2f} {run.current_step_rms_pct:11.2f} "
                   f"{run.current_step_p99_pct:11.2f} {run.pace:6.1f}"
                   + (f"   (current_cmd stayed at {run.current[-1]:g} A throughout)" if still else ""))
     print(f"   wall time from the nodes' launch to their exit: {seconds['total']:.1f} s")

@@ -12,12 +12,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import qmc
 
 from sma_stage.identify.fit import information_criterion
 from sma_stage.model.effects import FREE_VALUES, START_KINDS, joule_heating
 from sma_stage.model.identified import IdentifiedModel, Start
 
-TURNING_GRID_POINTS = 9  # turning points tried before the free values are polished
+TURNING_GRID_POINTS = 9  # turning points tried (the other free values held) before the values are polished
+SCATTERED_STARTS = 32  # and points spread over every free value's range (a scrambled Sobol sequence)
+FREE_POLISHED = 3  # the polish runs from this many of the best of those
 FREE_MAX_EVALUATIONS = 60
 FREE_SAMPLES = 3000  # the free values are fitted on the record's first samples (where a start shows), at most this many
 ELAPSED_LIMIT_FACTOR = 10.0  # a drift's elapsed time before the record: at most this many record lengths
@@ -61,28 +64,31 @@ def estimate_start(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.n
 
 
 def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> StartFit:
-    """The free start of least SSR: the turning point over a grid, then every free value polished together
-    by bounded least squares from the best grid point, both on the first FREE_SAMPLES samples; its BIC
-    on the whole record."""
+    """The free start of least SSR, on the first FREE_SAMPLES samples: candidates are the turning point over
+    a grid (the other values held) and SCATTERED_STARTS points spread over every free value's range; every
+    value is polished together by bounded least squares from the FREE_POLISHED best, the least SSR kept.
+    Several polishes, because the SSR is flat in the turning point wherever the record's first sample wipes
+    the operators out, so one polish from the wrong side stays there. Its BIC on the whole record."""
     low, high = _bounds(model, t, u)
     held = model.start_state(t, u, Start("held"))
-    held_values = _held_values(model, held)
-    start_values = np.clip(held_values, low, high)
+    held_values = np.clip(_held_values(model, held), low, high)
     head = slice(0, min(y.size, FREE_SAMPLES))
     t_head, u_head, y_head = t[head], u[head], y[head]
-    grid = np.linspace(low[0], high[0], TURNING_GRID_POINTS)
-    costs = [start_fit(model, t_head, u_head, y_head, Start("free", (turning, *start_values[1:]))).cost
-             for turning in grid]
-    start_values[0] = grid[int(np.argmin(costs))]
     scale = max(float(np.ptp(y)), np.finfo(float).tiny)
 
     def residual(values: np.ndarray) -> np.ndarray:
         return (model.predict_from(t_head, u_head, Start("free", tuple(values))) - y_head) / scale
 
-    interior = np.clip(start_values, low + 1e-9 * (high - low), high - 1e-9 * (high - low))
-    solution = least_squares(residual, interior, bounds=(low, high), method="trf", x_scale="jac",
-                             diff_step=1e-4, max_nfev=FREE_MAX_EVALUATIONS)
-    return start_fit(model, t, u, y, Start("free", tuple(float(v) for v in solution.x)), low.size)
+    grid = [np.concatenate([[turning], held_values[1:]]) for turning in np.linspace(low[0], high[0],
+                                                                                    TURNING_GRID_POINTS)]
+    scattered = qmc.scale(qmc.Sobol(low.size, seed=0).random(SCATTERED_STARTS), low, high) if np.all(high > low) else []
+    candidates = sorted((float(np.sum(residual(values) ** 2)), tuple(values)) for values in [*grid, *scattered])
+    inner_low, inner_high = low + 1e-9 * (high - low), high - 1e-9 * (high - low)
+    polished = [least_squares(residual, np.clip(values, inner_low, inner_high), bounds=(low, high), method="trf",
+                              x_scale="jac", diff_step=1e-4, max_nfev=FREE_MAX_EVALUATIONS)
+                for _, values in candidates[:FREE_POLISHED]]
+    best = min(polished, key=lambda solution: solution.cost)
+    return start_fit(model, t, u, y, Start("free", tuple(float(v) for v in best.x)), low.size)
 
 
 def _held_values(model: IdentifiedModel, held: object) -> np.ndarray:
