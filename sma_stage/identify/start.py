@@ -79,8 +79,8 @@ def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -
     def residual(values: np.ndarray) -> np.ndarray:
         return (model.predict_from(t_head, u_head, Start("free", tuple(values))) - y_head) / scale
 
-    grid = [np.concatenate([[turning], held_values[1:]]) for turning in np.linspace(low[0], high[0],
-                                                                                    TURNING_GRID_POINTS)]
+    turnings = np.linspace(low[0], high[0], TURNING_GRID_POINTS)
+    grid = [np.concatenate([[turning], held_values[1:]]) for turning in turnings]
     scattered = qmc.scale(qmc.Sobol(low.size, seed=0).random(SCATTERED_STARTS), low, high) if np.all(high > low) else []
     candidates = sorted((float(np.sum(residual(values) ** 2)), tuple(values)) for values in [*grid, *scattered])
     inner_low, inner_high = low + 1e-9 * (high - low), high - 1e-9 * (high - low)
