@@ -139,6 +139,26 @@ def fit_or_none(v: np.ndarray, y: np.ndarray, operators: int | None, initial: GP
     return None if isinstance(result, NotFitted) else result
 
 
+def cold_fit(u: np.ndarray, y: np.ndarray, operators: int, unit: str, warm: FitResult | None,
+             regressors: np.ndarray | None = None) -> FitResult | None:
+    """fit_gpi from THOROUGH_STARTS data-derived starts (None where it cannot be fitted). On a record longer
+    than SCREEN_SAMPLES they run on a copy thinned to that many (their survey and finalists run on thinned
+    copies anyway), and the best is polished on all samples only where it beats `warm` (a fit of the same
+    data from elsewhere) on that copy; None where it does not."""
+    keep = even_indices(u.size, SCREEN_SAMPLES)
+    if keep.size == u.size:
+        return fit_or_none(u, y, operators, None, unit, regressors, THOROUGH_STARTS)
+    thinned_regressors = None if regressors is None else regressors[keep]
+    cold = fit_or_none(u[keep], y[keep], operators, None, unit, thinned_regressors, THOROUGH_STARTS)
+    if cold is None:
+        return None
+    if warm is not None:
+        residual = y[keep] - warm.predicted[keep]
+        if float(residual @ residual) <= cold.cost:
+            return None
+    return fit_or_none(u, y, operators, cold.parameters, unit, regressors)
+
+
 def pick(fits: Sequence) -> object:
     """fit_gpi's operator-count rule (choose_operator_count) over fits of several counts (anything with
     .cost and .operators; None for one that failed); of the count chosen, the lowest cost. The first fit
@@ -164,9 +184,10 @@ class Refits:
     def fit(self, value: float, thorough: bool = False) -> FitResult | None:
         """The best fit found at this x (None if it cannot be fitted)."""
         if value not in self.fits or thorough:
-            tries = [self.fits.get(value), self._try(value, self._nearest(value).parameters)]
+            warm = self._try(value, self._nearest(value).parameters)
+            tries = [self.fits.get(value), warm]
             if thorough:
-                tries.append(self._try(value, None, THOROUGH_STARTS))
+                tries.append(self._cold(value, warm))
             self.fits[value] = lowest_cost(tries)
         return self.fits[value]
 
@@ -183,18 +204,22 @@ class Refits:
         return fit_or_none(self.u_of(value), self.y, self.base.operators, initial,
                            self.base.parameters.output_unit, starts=starts)
 
+    def _cold(self, value: float, warm: FitResult | None) -> FitResult | None:
+        return cold_fit(self.u_of(value), self.y, self.base.operators, self.base.parameters.output_unit, warm)
+
 
 def scalar_search(cost: Callable[[float, bool], float], low: float, high: float, grid_points: int,
-                   thorough: bool = True) -> float:
+                   thorough: bool = True, coarse: bool | None = None) -> float:
     """The log x in [log low, log high] of least cost(log x, thorough): a log-spaced grid, then a bounded
-    Brent search between the best grid point's neighbours (to COARSE_LOG_TOLERANCE when thorough, else
-    to LOG_TOLERANCE). The GPI fit has local minima, so a wide search needs thorough grid evaluations: a
-    local polish alone stops where the plain GPI absorbed the effect."""
+    Brent search between the best grid point's neighbours (to COARSE_LOG_TOLERANCE when coarse, by default
+    when thorough, else to LOG_TOLERANCE). The GPI fit has local minima, so a wide search needs thorough
+    grid evaluations: a local polish alone stops where the plain GPI absorbed the effect."""
     grid = np.linspace(math.log(low), math.log(high), grid_points)
     costs = [cost(x, thorough) for x in grid]
     best = int(np.argmin(costs))
+    coarse = thorough if coarse is None else coarse
     x, fun = _brent(lambda x: cost(x, thorough), grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)],
-                    COARSE_LOG_TOLERANCE if thorough else LOG_TOLERANCE)
+                    COARSE_LOG_TOLERANCE if coarse else LOG_TOLERANCE)
     return float(x) if fun <= costs[best] else float(grid[best])
 
 

@@ -18,4 +18,4 @@ def delayed_input(t: np.ndarray, u: np.ndarray, delay_s: float) -> np.ndarray:
 
 
 
-EFFECT = InputTransformEffect("delay", "delay_s", lambda delay: Effect("delay", {"delay_s": delay}), relative_cost=6.0)
+EFFECT = InputTransformEffect("delay", "delay_s", lambda delay: Effect("delay", {"delay_s": delay}), relative_cost=5.9)

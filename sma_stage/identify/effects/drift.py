@@ -17,6 +17,7 @@ from sma_stage.identify.effects.base import (
     EffectFit,
     NotFitted,
     Progress,
+    cold_fit,
     finish_fit,
     fit_or_none,
     lowest_cost,
@@ -39,7 +40,7 @@ class DriftEffect(Candidate):
     A (1 - exp(-(t - t0)/tau_c)) [m] joins when it lowers the BIC (tau_c searched with the GPI held)."""
 
     name = "drift"
-    relative_cost = 4.5
+    relative_cost = 2.0
 
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
             starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
@@ -83,8 +84,8 @@ class DriftEffect(Candidate):
                columns: np.ndarray) -> FitResult | None:
         """The better of a warm-started and a cold fit (the warm one may keep what the plain GPI absorbed);
         None when neither can be had."""
-        return lowest_cost((fit_or_none(u, y, count, start, unit, columns),
-                            fit_or_none(u, y, count, None, unit, columns, THOROUGH_STARTS)))
+        warm = fit_or_none(u, y, count, start, unit, columns)
+        return lowest_cost((warm, cold_fit(u, y, count, unit, warm, columns)))
 
     def _finish(self, t: np.ndarray, y: np.ndarray, gpi: FitResult, tau_c: float | None, parameter_count: int,
                 started: float, progress: Progress) -> EffectFit:

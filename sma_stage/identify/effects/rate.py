@@ -67,7 +67,7 @@ class RateEffect(Candidate):
     (trust-region reflective, a10 solved linearly inside)."""
 
     name = "rate"
-    relative_cost = 2.0
+    relative_cost = 2.1
 
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
             starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:

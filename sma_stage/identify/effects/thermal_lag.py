@@ -37,7 +37,7 @@ class ThermalLagEffect(Candidate):
     drive is filtered linearly). The heating reading reports joule_reference_a = u_ref."""
 
     name = "thermal_lag"
-    relative_cost = 6.5
+    relative_cost = 6.4
 
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
             starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
