@@ -20,7 +20,7 @@ the loop's width at every reversal of its target, and the exact lead multiplies 
 tau / dt (about 100 at 10 Hz for the wires' 11 s). Together they turned sensor noise in the PI loop
 into a current switching from rail to rail (bench/bench_tracking.py: 157 % of the limit RMS from one
 command to the next). With lead_limit g, the lag's state follows v* with the time constant tau / g at
-most, the plant the PI loop sees; `imc_gains` tunes the loop for it (IMC, lambda = tau / g). The rate
+most, the plant the PI loop sees; `imc_gains` tunes the loop for it (IMC, lambda = tau / 2g). The rate
 limit spreads the jump across the loop over a few steps, which the lag's own time constant makes
 harmless. Without a measurement (feedforward) no noise enters, and the lead has its own limit,
 feedforward_lead_limit, for a trade the loop does not have: on the simulator a higher one tracks a
@@ -94,6 +94,7 @@ DEFAULT_FEEDFORWARD_LEAD_LIMIT = 3.0
 TRACKING_FEEDFORWARD_LEAD_LIMIT = 10.0  # feedforward_lead_limit for following a continuous signal
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
+LAMBDA_FRACTION = 0.5  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (bench/README.md)
 
 
 def checked_gains(kp: float, ki: float) -> dict[str, float]:
@@ -105,13 +106,14 @@ def imc_gains(model: IdentifiedModel, control_period_s: float, lead_limit: float
               ) -> dict[str, float]:
     """PI gains (kp [m/m], ki [1/s]) by IMC (lambda) tuning for what the loop sees around the compensated
     model: a first-order lag of tau_c = tau / lead_limit (tau the model's thermal lag, 0 without one) and
-    one control period of dead time theta; lambda = tau_c: kp = tau_c / (tau_c + theta),
-    ki = 1 / (tau_c + theta)."""
+    one control period of dead time theta; lambda = LAMBDA_FRACTION tau_c: kp = tau_c / (lambda + theta),
+    ki = 1 / (lambda + theta)."""
     period = _non_negative("control_period_s", control_period_s)
     if period == 0.0:
         raise InputError("control_period_s must be above 0")
     closed = ThermalState(thermal_effect(model)).tau_s / max(lead_limit, 1.0)
-    return {"kp": closed / (closed + period), "ki": 1.0 / (closed + period)}
+    wanted = LAMBDA_FRACTION * closed
+    return {"kp": closed / (wanted + period), "ki": 1.0 / (wanted + period)}
 
 
 class _AtLeast:

@@ -200,26 +200,24 @@ class Refits:
         fitted = [(abs(math.log(key / value)), fit) for key, fit in self.fits.items() if fit is not None]
         return min(fitted, key=lambda pair: pair[0])[1] if fitted else self.base
 
-    def _try(self, value: float, initial: GPIParameters | None, starts: int | None = None) -> FitResult | None:
-        return fit_or_none(self.u_of(value), self.y, self.base.operators, initial,
-                           self.base.parameters.output_unit, starts=starts)
+    def _try(self, value: float, initial: GPIParameters) -> FitResult | None:
+        return fit_or_none(self.u_of(value), self.y, self.base.operators, initial, self.base.parameters.output_unit)
 
     def _cold(self, value: float, warm: FitResult | None) -> FitResult | None:
         return cold_fit(self.u_of(value), self.y, self.base.operators, self.base.parameters.output_unit, warm)
 
 
 def scalar_search(cost: Callable[[float, bool], float], low: float, high: float, grid_points: int,
-                   thorough: bool = True, coarse: bool | None = None) -> float:
+                   thorough: bool = True) -> float:
     """The log x in [log low, log high] of least cost(log x, thorough): a log-spaced grid, then a bounded
-    Brent search between the best grid point's neighbours (to COARSE_LOG_TOLERANCE when coarse, by default
-    when thorough, else to LOG_TOLERANCE). The GPI fit has local minima, so a wide search needs thorough
-    grid evaluations: a local polish alone stops where the plain GPI absorbed the effect."""
+    Brent search between the best grid point's neighbours (to COARSE_LOG_TOLERANCE when thorough, else
+    to LOG_TOLERANCE). The GPI fit has local minima, so a wide search needs thorough grid evaluations: a
+    local polish alone stops where the plain GPI absorbed the effect."""
     grid = np.linspace(math.log(low), math.log(high), grid_points)
     costs = [cost(x, thorough) for x in grid]
     best = int(np.argmin(costs))
-    coarse = thorough if coarse is None else coarse
     x, fun = _brent(lambda x: cost(x, thorough), grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)],
-                    COARSE_LOG_TOLERANCE if coarse else LOG_TOLERANCE)
+                    COARSE_LOG_TOLERANCE if thorough else LOG_TOLERANCE)
     return float(x) if fun <= costs[best] else float(grid[best])
 
 

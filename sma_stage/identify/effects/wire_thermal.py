@@ -32,12 +32,9 @@ from sma_stage.identify.effects.base import (
 from sma_stage.identify.fit import FitResult
 from sma_stage.model.effects import Effect
 
-SPREAD = 10.0  # the first sweep searches each time constant within SPREAD times either side of the common one
+SPREAD = 10.0  # each time constant is searched within SPREAD times either side of the common one
 SWEEPS = 2  # coordinate sweeps over (tau_a, tau_b)
 SWEEP_GRID_POINTS = 5
-LATER_SPREAD = 1.5  # a later sweep searches within LATER_SPREAD times either side of the value found (the
-# first sweep's Brent stops at COARSE_LOG_TOLERANCE, the last one's at LOG_TOLERANCE)
-LATER_GRID_POINTS = 3
 
 
 class WireThermalEffect(Candidate):
@@ -45,7 +42,7 @@ class WireThermalEffect(Candidate):
     turn, each by a bounded search over its log with the GPI refitted (warm) at every value."""
 
     name = "wire_thermal"
-    relative_cost = 7.3
+    relative_cost = 11.5
 
     def fit(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, base: FitResult, progress: Progress = None,
             starts: tuple[str, ...] = FITTED_STARTS) -> EffectFit:
@@ -101,8 +98,7 @@ class WireThermalEffect(Candidate):
         gpi = fit_or_none(inputs(taus, t_s, u_s), y_s, first.operators, first.gpi_parameters, unit)
         if gpi is None:
             return None
-        for sweep in range(SWEEPS):
-            spread, points = (SPREAD, SWEEP_GRID_POINTS) if sweep == 0 else (LATER_SPREAD, LATER_GRID_POINTS)
+        for _ in range(SWEEPS):
             for wire in (0, 1):
                 def transform(value: float, wire: int = wire) -> np.ndarray:
                     pair = list(taus)
@@ -110,9 +106,8 @@ class WireThermalEffect(Candidate):
                     return inputs(pair, t_s, u_s)
 
                 fits = Refits(transform, y_s, gpi)
-                search = (max(taus[wire] / spread, low), min(taus[wire] * spread, high))
-                taus[wire] = math.exp(scalar_search(fits.cost, *search, points, thorough=False,
-                                                    coarse=sweep < SWEEPS - 1))
+                search = (max(taus[wire] / SPREAD, low), min(taus[wire] * SPREAD, high))
+                taus[wire] = math.exp(scalar_search(fits.cost, *search, SWEEP_GRID_POINTS, thorough=False))
                 gpi = fits.fit(taus[wire], thorough=screen.size == t.size)
                 if gpi is None:
                     return None
