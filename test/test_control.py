@@ -229,7 +229,7 @@ def test_the_loops_target_reverses_only_beyond_the_deadband():
 
 def test_imc_gains_follow_the_identified_lag_and_the_control_period():
     gains = imc_gains(lagged(9.0), 0.1, lead_limit=3.0)
-    assert gains == pytest.approx({"kp": 3.0 / 1.6, "ki": 1.0 / 1.6}), "lambda half the 3 s lag the lead leaves"
+    assert gains == pytest.approx({"kp": 3.0 / 2.2, "ki": 1.0 / 2.2}), "lambda 0.7 of the 3 s lag the lead leaves"
     assert imc_gains(MODEL, 0.5) == {"kp": 0.0, "ki": 2.0}, "no lag: integral action over the dead time"
     with pytest.raises(InputError, match="control_period_s"):
         imc_gains(MODEL, 0.0)

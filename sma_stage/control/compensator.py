@@ -20,7 +20,7 @@ the loop's width at every reversal of its target, and the exact lead multiplies 
 tau / dt (about 100 at 10 Hz for the wires' 11 s). Together they turned sensor noise in the PI loop
 into a current switching from rail to rail (bench/bench_tracking.py: 157 % of the limit RMS from one
 command to the next). With lead_limit g, the lag's state follows v* with the time constant tau / g at
-most, the plant the PI loop sees; `imc_gains` tunes the loop for it (IMC, lambda = tau / 2g). The rate
+most, the plant the PI loop sees; `imc_gains` tunes the loop for it (IMC, lambda = 0.7 tau / g). The rate
 limit spreads the jump across the loop over a few steps, which the lag's own time constant makes
 harmless. Without a measurement (feedforward) no noise enters, and the lead has its own limit,
 feedforward_lead_limit, for a trade the loop does not have: on the simulator a higher one tracks a
@@ -94,7 +94,7 @@ DEFAULT_FEEDFORWARD_LEAD_LIMIT = 3.0
 TRACKING_FEEDFORWARD_LEAD_LIMIT = 10.0  # feedforward_lead_limit for following a continuous signal
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
-LAMBDA_FRACTION = 0.5  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (bench/README.md)
+LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (bench/README.md)
 
 
 def checked_gains(kp: float, ki: float) -> dict[str, float]:
