@@ -599,7 +599,8 @@ def test_compensator_default_model_is_the_shipped_model_file_identified_from_the
     assert compensator.model.effect_names == ["thermal_lag"] and compensator.model.state is None
     assert compensator.values["feedback"], "the default holds a setpoint: the PI loop is on"
     tau = compensator.model.effect("thermal_lag").parameters["tau_s"]
-    assert compensator.core.kp == pytest.approx(tau / 3.0 / (tau / 3.0 + 1.0 / 50.0)), "IMC gains from the model"
+    lag_left = tau / 3.0
+    assert compensator.core.kp == pytest.approx(lag_left / (0.7 * lag_left + 1.0 / 50.0)), "IMC gains from the model"
     lagless = IdentifiedModel(DEFAULT_PARAMS, OPERATORS).to_yaml_text()
     assert compensator.set_parameters([Parameter("model", value=lagless)])[0].successful
     assert compensator.core.kp == 0.0 and compensator.core.ki == pytest.approx(50.0), "the gains follow the model"
