@@ -269,3 +269,18 @@ def test_projected_gradient_matches_central_differences_with_the_scale_at_its_bo
             up, down = problem.fun(x + step), problem.fun(x - step)
             difference = (up @ up - down @ down) / (2 * step[j])
             assert gradient[j] == pytest.approx(difference, rel=1e-4)
+
+
+def test_a_thorough_cold_fit_on_a_long_record_runs_on_a_thinned_copy_and_polishes_only_what_beats_the_warm_fit():
+    from sma_stage.identify.effects.base import SCREEN_SAMPLES, cold_fit
+
+    _, u, y = identification_data(samples=3 * SCREEN_SAMPLES, noise=1e-6)
+    good = fit_gpi(u, y, operators=OPERATORS, initial=TRUTH)
+    again = cold_fit(u, y, OPERATORS, "m", good)
+    assert again is None or again.cost <= 1.001 * good.cost, "no polish, or one that ends at the optimum"
+    elsewhere = fit_gpi(u, 0.5 * y, operators=OPERATORS)  # a fit of other data: its output misses this record
+    found = cold_fit(u, y, OPERATORS, "m", elsewhere)
+    assert found is not None and found.predicted.size == u.size, "polished on every sample"
+    assert found.cost <= 1.001 * good.cost, "the data-derived starts reach the optimum"
+    short = cold_fit(u[:SCREEN_SAMPLES], y[:SCREEN_SAMPLES], OPERATORS, "m", good)
+    assert short is not None and short.predicted.size == SCREEN_SAMPLES, "a short record: the plain cold fit"
