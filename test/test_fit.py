@@ -9,6 +9,7 @@ import pytest
 
 from sma_stage.errors import InputError
 from sma_stage.identify import fit as fit_module
+from sma_stage.identify.effects.base import SCREEN_SAMPLES, cold_fit
 from sma_stage.identify.fit import (
     SCALE_LIMIT,
     FitResult,
@@ -272,8 +273,6 @@ def test_projected_gradient_matches_central_differences_with_the_scale_at_its_bo
 
 
 def test_a_thorough_cold_fit_on_a_long_record_runs_on_a_thinned_copy_and_polishes_only_what_beats_the_warm_fit():
-    from sma_stage.identify.effects.base import SCREEN_SAMPLES, cold_fit
-
     _, u, y = identification_data(samples=3 * SCREEN_SAMPLES, noise=1e-6)
     good = fit_gpi(u, y, operators=OPERATORS, initial=TRUTH)
     again = cold_fit(u, y, OPERATORS, "m", good)

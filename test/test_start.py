@@ -1,6 +1,7 @@
 """How a record starts, estimated from its data (sma_stage.identify.start)."""
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -8,7 +9,7 @@ from sma_stage.identify.start import estimate_start
 from sma_stage.model import Effect, load_model_file
 from sma_stage.model.identified import Start
 
-LAGGED = replace(load_model_file("config/model_default.yaml"), effects=(Effect("thermal_lag", {"tau_s": 2.0}),),
+LAGGED = replace(load_model_file(Path(__file__).resolve().parents[1] / "config" / "model_default.yaml"), effects=(Effect("thermal_lag", {"tau_s": 2.0}),),
                  state=None)
 
 

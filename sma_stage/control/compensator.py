@@ -111,9 +111,9 @@ def imc_gains(model: IdentifiedModel, control_period_s: float, lead_limit: float
     period = _non_negative("control_period_s", control_period_s)
     if period == 0.0:
         raise InputError("control_period_s must be above 0")
-    closed = ThermalState(thermal_effect(model)).tau_s / max(lead_limit, 1.0)
-    wanted = LAMBDA_FRACTION * closed
-    return {"kp": closed / (wanted + period), "ki": 1.0 / (wanted + period)}
+    lag_left = ThermalState(thermal_effect(model)).tau_s / max(lead_limit, 1.0)
+    closed_loop = LAMBDA_FRACTION * lag_left
+    return {"kp": lag_left / (closed_loop + period), "ki": 1.0 / (closed_loop + period)}
 
 
 class _AtLeast:

@@ -184,10 +184,11 @@ class Refits:
     def fit(self, value: float, thorough: bool = False) -> FitResult | None:
         """The best fit found at this x (None if it cannot be fitted)."""
         if value not in self.fits or thorough:
-            warm = self._try(value, self._nearest(value).parameters)
+            u, count, unit = self.u_of(value), self.base.operators, self.base.parameters.output_unit
+            warm = fit_or_none(u, self.y, count, self._nearest(value).parameters, unit)
             tries = [self.fits.get(value), warm]
             if thorough:
-                tries.append(self._cold(value, warm))
+                tries.append(cold_fit(u, self.y, count, unit, warm))
             self.fits[value] = lowest_cost(tries)
         return self.fits[value]
 
@@ -199,12 +200,6 @@ class Refits:
     def _nearest(self, value: float) -> FitResult:
         fitted = [(abs(math.log(key / value)), fit) for key, fit in self.fits.items() if fit is not None]
         return min(fitted, key=lambda pair: pair[0])[1] if fitted else self.base
-
-    def _try(self, value: float, initial: GPIParameters) -> FitResult | None:
-        return fit_or_none(self.u_of(value), self.y, self.base.operators, initial, self.base.parameters.output_unit)
-
-    def _cold(self, value: float, warm: FitResult | None) -> FitResult | None:
-        return cold_fit(self.u_of(value), self.y, self.base.operators, self.base.parameters.output_unit, warm)
 
 
 def scalar_search(cost: Callable[[float, bool], float], low: float, high: float, grid_points: int,
