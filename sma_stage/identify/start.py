@@ -20,7 +20,7 @@ from sma_stage.model.identified import IdentifiedModel, Start
 
 TURNING_GRID_POINTS = 9  # turning points tried (the other free values held) before the values are polished
 SCATTERED_STARTS = 32  # and points spread over every free value's range (a scrambled Sobol sequence)
-FREE_POLISHED = 3  # the polish runs from this many of the best of those
+FREE_POLISHED = 8  # the polish runs from this many of the best of those
 FREE_MAX_EVALUATIONS = 60
 FREE_SAMPLES = 3000  # the free values are fitted on the record's first samples (where a start shows), at most this many
 ELAPSED_LIMIT_FACTOR = 10.0  # a drift's elapsed time before the record: at most this many record lengths
