@@ -20,7 +20,9 @@ from sma_stage.model.identified import IdentifiedModel, Start
 
 TURNING_GRID_POINTS = 9  # turning points tried (the other free values held) before the values are polished
 SCATTERED_STARTS = 32  # and points spread over every free value's range (a scrambled Sobol sequence)
-FREE_POLISHED = 8  # the polish runs from this many of the best of those
+FREE_POLISHED = 8  # a short polish runs from this many of the best of those,
+FREE_SURVEY_EVALUATIONS = 3  # of this many evaluations,
+FREE_FINISHED = 2  # and the best few of those polishes go on, up to FREE_MAX_EVALUATIONS in all
 FREE_MAX_EVALUATIONS = 60
 FREE_SAMPLES = 3000  # the free values are fitted on the record's first samples (where a start shows), at most this many
 ELAPSED_LIMIT_FACTOR = 10.0  # a drift's elapsed time before the record: at most this many record lengths
@@ -66,9 +68,10 @@ def estimate_start(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.n
 def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> StartFit:
     """The free start of least SSR, on the first FREE_SAMPLES samples: candidates are the turning point over
     a grid (the other values held) and SCATTERED_STARTS points spread over every free value's range; every
-    value is polished together by bounded least squares from the FREE_POLISHED best, the least SSR kept.
-    Several polishes, because the SSR is flat in the turning point wherever the record's first sample wipes
-    the operators out, so one polish from the wrong side stays there. Its BIC on the whole record."""
+    value is polished together by bounded least squares from the FREE_POLISHED best (a short polish each,
+    then the FREE_FINISHED best go on), the least SSR kept. Several polishes, because the SSR is flat in
+    the turning point wherever the record's first sample wipes the operators out, so one polish from the
+    wrong side stays there. Its BIC on the whole record."""
     low, high = _bounds(model, t, u)
     held = model.start_state(t, u, Start("held"))
     held_values = np.clip(_held_values(model, held), low, high)
@@ -84,10 +87,16 @@ def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -
     scattered = qmc.scale(qmc.Sobol(low.size, seed=0).random(SCATTERED_STARTS), low, high) if np.all(high > low) else []
     candidates = sorted((float(np.sum(residual(values) ** 2)), tuple(values)) for values in [*grid, *scattered])
     inner_low, inner_high = low + 1e-9 * (high - low), high - 1e-9 * (high - low)
-    polished = [least_squares(residual, np.clip(values, inner_low, inner_high), bounds=(low, high), method="trf",
-                              x_scale="jac", diff_step=1e-4, max_nfev=FREE_MAX_EVALUATIONS)
-                for _, values in candidates[:FREE_POLISHED]]
-    best = min(polished, key=lambda solution: solution.cost)
+
+    def polish(values: np.ndarray, evaluations: int) -> object:
+        return least_squares(residual, np.clip(values, inner_low, inner_high), bounds=(low, high), method="trf",
+                             x_scale="jac", diff_step=1e-4, max_nfev=evaluations)
+
+    surveyed = sorted((polish(np.array(values), FREE_SURVEY_EVALUATIONS) for _, values in candidates[:FREE_POLISHED]),
+                      key=lambda solution: solution.cost)
+    finished = [polish(solution.x, FREE_MAX_EVALUATIONS - FREE_SURVEY_EVALUATIONS) if solution.status == 0 else solution
+                for solution in surveyed[:FREE_FINISHED]]
+    best = min(finished, key=lambda solution: solution.cost)
     return start_fit(model, t, u, y, Start("free", tuple(float(v) for v in best.x)), low.size)
 
 
