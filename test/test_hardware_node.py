@@ -21,6 +21,7 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from scpi_server import LoopbackRig  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
+from std_srvs.srv import SetBool  # noqa: E402
 from test_hardware import rig_config  # noqa: E402
 from test_nodes import REPO, Listener, Ros, read_until, unique_domain, wait_until  # noqa: E402
 
@@ -96,6 +97,9 @@ def test_the_bridge_waits_inactive_and_runs_through_the_lifecycle_services(rig, 
         wait_until(lambda c=current: rig.stage_current_a() == pytest.approx(c), 5.0, f"{current} A in the wires")
         wait_until(lambda c=current: stage.applied_a == pytest.approx(c), 5.0, "current_applied read back")
     assert rig.conflicts == 0
+    assert not ros.call(probe, SetBool, "stage/freeze_time", SetBool.Request(data=True)).success, \
+        "a real stage's time runs on"
+    assert not stage.frozen
     assert change_state(ros, probe, Transition.TRANSITION_DEACTIVATE)
     assert output_off(rig) and lifecycle_label(ros, probe) == "inactive"
     assert change_state(ros, probe, Transition.TRANSITION_CLEANUP)

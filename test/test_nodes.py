@@ -29,7 +29,7 @@ from rclpy.time import Time as RosTime  # noqa: E402
 from rosgraph_msgs.msg import Clock as ClockMessage  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
+from std_srvs.srv import SetBool, Trigger  # noqa: E402
 
 from sma_stage.cli import main as cli_main  # noqa: E402
 from sma_stage.errors import InputError  # noqa: E402
@@ -234,6 +234,23 @@ def test_stage_stop_latches_until_resume(ros):
     assert stage.applied_a == 0.0, "resume must not bring back an old command"
     send(0.5)
     wait_until(lambda: stage.applied_a == 0.5, 5.0, "a command after resume")
+
+
+def test_stage_freeze_time_stops_the_simulator_and_its_current_resumes_after(ros):
+    """Frozen longer than command_timeout: nothing is published, and the first step after the thaw applies the
+    held command (the watchdog counts from the thaw, not from the last command)."""
+    stage, probe, _ = stage_at_one_ampere(ros, rate_hz=100.0, command_timeout=0.5)
+    applied = Listener(probe, Float64, "current_applied", COMMAND_QOS)
+    answer = ros.call(probe, SetBool, "stage/freeze_time", SetBool.Request(data=True))
+    assert answer.success and stage.frozen
+    time.sleep(0.1)
+    steps, received = stage.published_steps, len(applied.messages)
+    time.sleep(0.8)
+    assert stage.published_steps == steps and len(applied.messages) == received
+    assert ros.call(probe, SetBool, "stage/freeze_time", SetBool.Request(data=False)).success
+    wait_until(lambda: len(applied.messages) > received + 1, 5.0, "two steps after the thaw")
+    assert applied.messages[received + 1].data == 1.0, "the first step after the thaw (each message reports the step before)"
+    assert not stage.watchdog_tripped
 
 
 def test_stage_watchdog_keeps_quiet_while_stopped(ros):

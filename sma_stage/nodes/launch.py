@@ -258,6 +258,13 @@ class RosClient:
         response = self.call(Trigger, name, Trigger.Request(), timeout_s)
         return bool(response.success), str(response.message)
 
+    def set_bool(self, name: str, value: bool, timeout_s: float = 10.0) -> tuple[bool, str]:
+        """Call a std_srvs/SetBool service: (success, message)."""
+        from std_srvs.srv import SetBool
+
+        response = self.call(SetBool, name, SetBool.Request(data=value), timeout_s)
+        return bool(response.success), str(response.message)
+
     def lifecycle(self, node_name: str, transition: str | None = None, timeout_s: float = 10.0) -> str:
         """The lifecycle state of a managed node (e.g. 'inactive'), after the transition given by its label
         ('configure', 'activate', 'deactivate', 'cleanup', 'shutdown'); InputError when the node refuses it."""

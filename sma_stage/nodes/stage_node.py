@@ -13,7 +13,10 @@ instrument's queue, a protection trip) switches the output off, sends the node t
 reconnecting with back-off; a reconnect leaves it inactive: the output is never switched on by itself.
 
 Safety: commands are clamped to +-max_current, NaN/inf commands are refused (the last safe command stays,
-but does not refresh the watchdog), `~/stop` zeroes the current until `~/resume`. When no command came
+but does not refresh the watchdog), `~/stop` zeroes the current until `~/resume`.
+`~/freeze_time` (std_srvs/SetBool, the simulator only) stops the simulated stage where it is: no steps, no
+/clock, nothing published, until it is called with false (the current held resumes; the watchdog counts
+from then). A long computation on a machine shared with a fast simulated stage (a refit) then has the CPU. When no command came
 within command_timeout (steady clock) the simulator's current is zeroed; on instruments the node
 deactivates (output off).
 
@@ -38,7 +41,7 @@ from rclpy.time import Time
 from rosgraph_msgs.msg import Clock as ClockMessage
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
-from std_srvs.srv import Trigger
+from std_srvs.srv import SetBool, Trigger
 
 from sma_stage.errors import InputError
 from sma_stage.nodes._common import (
@@ -175,6 +178,7 @@ class StageNode(LifecycleNode):
         self.applied_a = 0.0
         self.last_command: Time | None = None
         self.stopped = False
+        self.frozen = False
         self.watchdog_tripped = False
         self.published_steps = 0  # steps published: one joint_states and one current_applied each
         self.clamped_count = 0
@@ -195,6 +199,7 @@ class StageNode(LifecycleNode):
         self.create_subscription(Float64, "current_cmd", self.on_command, COMMAND_QOS)
         self.create_service(Trigger, "~/stop", self.on_stop)
         self.create_service(Trigger, "~/resume", self.on_resume)
+        self.create_service(SetBool, "~/freeze_time", self.on_freeze_time)
         self.create_timer(1.0 / self.rate_hz, quiet_on_shutdown(self, self.on_tick), clock=self.steady)
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics), clock=self.steady)
         self.get_logger().info(f"stage ready: backend {self.backend}, {self.rate_hz:g} Hz, "
@@ -385,6 +390,8 @@ class StageNode(LifecycleNode):
         if self.lifecycle not in ("active", "inactive"):
             self._reconnect_when_due()
             return
+        if self.frozen:
+            return
         start_ns = self.steady.now().nanoseconds
         self.timing.started(start_ns)
         try:
@@ -442,6 +449,23 @@ class StageNode(LifecycleNode):
         self.get_logger().info(response.message)
         return response
 
+    def on_freeze_time(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        """Freeze (data true) or run on (false) the simulated stage; refused on instruments, whose time runs."""
+        if self.backend != "sim":
+            response.success = False
+            response.message = f"the {self.backend} stage's time cannot be frozen: only the simulator's"
+            return response
+        was_frozen, self.frozen = self.frozen, bool(request.data)
+        if was_frozen and not self.frozen:
+            self._last_tick = None
+            if self.last_command is not None:
+                self.last_command = self.steady.now()
+        response.success = True
+        response.message = ("simulated time frozen: no steps until ~/freeze_time false" if self.frozen
+                            else "simulated time runs" + ("" if was_frozen else " (was not frozen)"))
+        self.get_logger().info(response.message)
+        return response
+
     def close(self) -> None:
         """At exit (Ctrl-C, SIGTERM): output off as far as possible, disconnect, and say how many steps were
         published (a soak counts them against a bag)."""
@@ -459,6 +483,8 @@ class StageNode(LifecycleNode):
             level, text = DiagnosticStatus.ERROR, f"{self.lifecycle}: {self.fault}"
         elif self.stopped:
             level, text = DiagnosticStatus.WARN, "stopped (call ~/resume)"
+        elif self.frozen:
+            level, text = DiagnosticStatus.WARN, "simulated time frozen (call ~/freeze_time false)"
         elif self.watchdog_tripped:
             level, text = DiagnosticStatus.WARN, "no recent command: current held at zero"
         elif self.lifecycle == "active":
@@ -473,6 +499,7 @@ class StageNode(LifecycleNode):
             "clamped_commands": self.clamped_count,
             "rejected_commands": self.rejected_count,
             "stopped": self.stopped,
+            "frozen": self.frozen,
             "watchdog_tripped": self.watchdog_tripped,
             "faults": self.faults,
             "last_fault": self.last_fault,
