@@ -13,12 +13,13 @@ instrument's queue, a protection trip) switches the output off, sends the node t
 reconnecting with back-off; a reconnect leaves it inactive: the output is never switched on by itself.
 
 Safety: commands are clamped to +-max_current, NaN/inf commands are refused (the last safe command stays,
-but does not refresh the watchdog), `~/stop` zeroes the current until `~/resume`.
-`~/freeze_time` (std_srvs/SetBool, the simulator only) stops the simulated stage where it is: no steps, no
-/clock, nothing published, until it is called with false (the current held resumes; the watchdog counts
-from then). A long computation on a machine shared with a fast simulated stage (a refit) then has the CPU. When no command came
+but does not refresh the watchdog), `~/stop` zeroes the current until `~/resume`. When no command came
 within command_timeout (steady clock) the simulator's current is zeroed; on instruments the node
 deactivates (output off).
+
+`~/freeze_time` (std_srvs/SetBool, the simulator only) stops the simulated stage where it is: no steps, no
+/clock, nothing published, until it is called with false (the current held resumes; the watchdog counts
+from then). A long computation on a machine shared with a fast simulated stage (a refit) then has the CPU.
 
 Time: a timer ticks every 1/rate_hz wall seconds (steady clock). With use_sim_time each tick advances the
 simulator by exactly time_scale/rate_hz simulated seconds, publishes /clock from the stage's time and
