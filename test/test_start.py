@@ -10,8 +10,8 @@ from sma_stage.identify.start import estimate_start
 from sma_stage.model import Effect, GPIParameters, load_model_file
 from sma_stage.model.identified import IdentifiedModel, Start
 
-LAGGED = replace(load_model_file(Path(__file__).resolve().parents[1] / "config" / "model_default.yaml"), effects=(Effect("thermal_lag", {"tau_s": 2.0}),),
-                 state=None)
+DEFAULT_MODEL = load_model_file(Path(__file__).resolve().parents[1] / "config" / "model_default.yaml")
+LAGGED = replace(DEFAULT_MODEL, effects=(Effect("thermal_lag", {"tau_s": 2.0}),), state=None)
 
 
 def test_a_free_start_whose_turning_point_the_first_sample_does_not_wipe_out_is_found():

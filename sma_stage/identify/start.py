@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.stats import qmc
 
 from sma_stage.identify.fit import information_criterion
@@ -88,7 +88,7 @@ def _free(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray) -
     candidates = sorted((float(np.sum(residual(values) ** 2)), tuple(values)) for values in [*grid, *scattered])
     inner_low, inner_high = low + 1e-9 * (high - low), high - 1e-9 * (high - low)
 
-    def polish(values: np.ndarray, evaluations: int) -> object:
+    def polish(values: np.ndarray, evaluations: int) -> OptimizeResult:
         return least_squares(residual, np.clip(values, inner_low, inner_high), bounds=(low, high), method="trf",
                              x_scale="jac", diff_step=1e-4, max_nfev=evaluations)
 
