@@ -15,6 +15,7 @@ from sma_stage.identify.fit import (
     FitResult,
     fit_gpi,
     information_criterion,
+    levenberg_marquardt,
     model_jacobian,
     normalized,
     predict,
@@ -283,3 +284,36 @@ def test_a_thorough_cold_fit_on_a_long_record_runs_on_a_thinned_copy_and_polishe
     assert found.cost <= 1.001 * good.cost, "the data-derived starts reach the optimum"
     short = cold_fit(u[:SCREEN_SAMPLES], y[:SCREEN_SAMPLES], OPERATORS, "m", good)
     assert short is not None and short.predicted.size == SCREEN_SAMPLES, "a short record: the plain cold fit"
+
+
+def _decays(x):
+    """Residual and Jacobian of a * exp(-b t) + c against a known curve, for the optimiser's tests."""
+    t = np.linspace(0.0, 4.0, 40)
+    target = 2.0 * np.exp(-1.3 * t) + 0.5
+    a, b, c = x
+    decay = np.exp(-b * t)
+    return a * decay + c - target, np.column_stack([decay, -a * t * decay, np.ones_like(t)])
+
+
+def test_levenberg_marquardt_finds_scipys_minimum_inside_and_on_a_bound():
+    """The fit's optimiser against scipy's TRF on a small problem: the same minimum with the bounds slack,
+    and the same constrained minimum with c held below its best value by a bound the gradient pushes against."""
+    from scipy.optimize import least_squares
+
+    fun, jac = (lambda x: _decays(x)[0]), (lambda x: _decays(x)[1])
+    for high in ([10.0, 10.0, 10.0], [10.0, 10.0, 0.3]):
+        bounds = (np.array([0.0, 0.0, -1.0]), np.array(high))
+        ours = levenberg_marquardt(fun, jac, np.array([1.0, 0.5, 0.0]), bounds, max_nfev=200)
+        theirs = least_squares(fun, [1.0, 0.5, 0.0], jac=jac, bounds=bounds, ftol=1e-12, xtol=1e-12, gtol=1e-12)
+        assert ours.success and ours.status > 0, ours.message
+        assert ours.cost == pytest.approx(theirs.cost, rel=1e-6, abs=1e-14)
+        np.testing.assert_allclose(ours.x, theirs.x, rtol=1e-4, atol=1e-8)
+    assert ours.x[2] == pytest.approx(0.3, abs=1e-6)
+
+
+def test_levenberg_marquardt_stops_at_its_evaluation_budget():
+    fun, jac = (lambda x: _decays(x)[0]), (lambda x: _decays(x)[1])
+    bounds = (np.zeros(3) - 10.0, np.zeros(3) + 10.0)
+    found = levenberg_marquardt(fun, jac, np.array([5.0, 5.0, 5.0]), bounds, max_nfev=3, tolerance=0.0)
+    assert (found.nfev, found.status, found.success) == (3, 0, False)
+    assert found.cost < 0.5 * float(np.sum(fun(np.array([5.0, 5.0, 5.0])) ** 2))
