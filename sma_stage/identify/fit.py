@@ -408,13 +408,18 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[
         if not free.any() or np.max(np.abs(gradient[free]) / scale[free]) <= tolerance * math.sqrt(cost):
             status = 1
             break
-        system = normal[np.ix_(free, free)] + damping * np.diag(scale[free] ** 2)
+        every = bool(free.all())
+        system = normal.copy() if every else normal[np.ix_(free, free)]
+        system.flat[::system.shape[0] + 1] += damping * scale[free] ** 2
         try:
             step = np.linalg.solve(system, -gradient[free])
         except np.linalg.LinAlgError:
-            step = np.zeros(int(free.sum()))
-        trial = x.copy()
-        trial[free] = np.clip(x[free] + step, inner_low[free], inner_high[free])
+            step = np.zeros(system.shape[0])
+        if every:
+            trial = np.clip(x + step, inner_low, inner_high)
+        else:
+            trial = x.copy()
+            trial[free] = np.clip(x[free] + step, inner_low[free], inner_high[free])
         moved = trial - x
         predicted = cost - float(np.sum((residual + jacobian @ moved) ** 2))
         trial_residual = fun(trial)
@@ -428,7 +433,7 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[
             if lowered <= tolerance * (cost + lowered):
                 status = 2
                 break
-            if np.linalg.norm(moved * scale) <= tolerance * (tolerance + np.linalg.norm(x * scale)):
+            if _norm(moved * scale) <= tolerance * (tolerance + _norm(x * scale)):
                 status = 3
                 break
         else:
@@ -439,6 +444,10 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[
                 break
     return OptimizeResult(x=x, cost=0.5 * cost, fun=residual, jac=jacobian, nfev=evaluations, status=status,
                           message=_LM_MESSAGES[status], success=status > 0)
+
+
+def _norm(vector: np.ndarray) -> float:
+    return math.sqrt(float(vector @ vector))
 
 
 def _setup(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
