@@ -317,3 +317,10 @@ def test_levenberg_marquardt_stops_at_its_evaluation_budget():
     found = levenberg_marquardt(fun, jac, np.array([5.0, 5.0, 5.0]), bounds, max_nfev=3, tolerance=0.0)
     assert (found.nfev, found.status, found.success) == (3, 0, False)
     assert found.cost < 0.5 * float(np.sum(fun(np.array([5.0, 5.0, 5.0])) ** 2))
+
+
+def test_levenberg_marquardt_refuses_a_start_where_the_residual_is_not_finite():
+    """As scipy's least_squares does, so that a fit that cannot start is a clear failure, not a NaN cost."""
+    bounds = (np.zeros(3) - 10.0, np.zeros(3) + 10.0)
+    with pytest.raises(ValueError, match="not finite at the start"):
+        levenberg_marquardt(lambda x: np.array([np.nan, 1.0]), lambda x: np.ones((2, 3)), np.zeros(3), bounds, 10)

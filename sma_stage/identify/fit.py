@@ -396,6 +396,8 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[
     x = np.clip(np.asarray(x0, dtype=float), inner_low, inner_high)
     residual, jacobian = fun(x), jac(x)
     cost = float(residual @ residual)
+    if not (math.isfinite(cost) and np.all(np.isfinite(jacobian))):
+        raise ValueError("the residual or its Jacobian is not finite at the start")
     evaluations, status = 1, 0
     column_scale = np.zeros(x.size)
     damping, growth = 1e-3, 2.0
@@ -415,33 +417,34 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[
             step = np.linalg.solve(system, -gradient[free])
         except np.linalg.LinAlgError:
             step = np.zeros(system.shape[0])
-        if every:
-            trial = np.clip(x + step, inner_low, inner_high)
-        else:
-            trial = x.copy()
-            trial[free] = np.clip(x[free] + step, inner_low[free], inner_high[free])
-        moved = trial - x
-        predicted = cost - float(np.sum((residual + jacobian @ moved) ** 2))
-        trial_residual = fun(trial)
-        evaluations += 1
-        trial_cost = float(trial_residual @ trial_residual)
-        if predicted > 0.0 and trial_cost < cost:
-            lowered = cost - trial_cost
-            x, residual, cost, jacobian = trial, trial_residual, trial_cost, jac(trial)
-            damping *= max(1.0 / 3.0, 1.0 - (2.0 * lowered / predicted - 1.0) ** 3)
-            growth = 2.0
-            if lowered <= tolerance * (cost + lowered):
-                status = 2
-                break
-            if _norm(moved * scale) <= tolerance * (tolerance + _norm(x * scale)):
-                status = 3
-                break
-        else:
-            damping *= growth
-            growth *= 2.0
-            if damping > _LM_LARGEST_DAMPING:
-                status = 2
-                break
+        if np.all(np.isfinite(step)):
+            if every:
+                trial = np.clip(x + step, inner_low, inner_high)
+            else:
+                trial = x.copy()
+                trial[free] = np.clip(x[free] + step, inner_low[free], inner_high[free])
+            moved = trial - x
+            predicted = cost - float(np.sum((residual + jacobian @ moved) ** 2))
+            trial_residual = fun(trial)
+            evaluations += 1
+            trial_cost = float(trial_residual @ trial_residual)
+            if predicted > 0.0 and trial_cost < cost:
+                lowered = cost - trial_cost
+                x, residual, cost, jacobian = trial, trial_residual, trial_cost, jac(trial)
+                damping *= max(1.0 / 3.0, 1.0 - (2.0 * lowered / predicted - 1.0) ** 3)
+                growth = 2.0
+                if lowered <= tolerance * (cost + lowered):
+                    status = 2
+                    break
+                if _norm(moved * scale) <= tolerance * (tolerance + _norm(x * scale)):
+                    status = 3
+                    break
+                continue
+        damping *= growth
+        growth *= 2.0
+        if damping > _LM_LARGEST_DAMPING:
+            status = 2
+            break
     return OptimizeResult(x=x, cost=0.5 * cost, fun=residual, jac=jacobian, nfev=evaluations, status=status,
                           message=_LM_MESSAGES[status], success=status > 0)
 
