@@ -88,7 +88,9 @@ def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states:
 def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
     """Upper-triangular R of the QR factorisation of the matrix whose columns are rows[order] (each row
     of `rows` one column of length N); `rows` is overwritten. Single-threaded, so a tall-skinny QR costs
-    about 2 N k^2 flops whatever the BLAS threading does."""
+    about 2 N k^2 flops whatever the BLAS threading does. Each reflection is applied to four columns per
+    pass over the samples (four independent sums, each in the same order as one column at a time, so R is
+    the same to the bit; 1.5-1.75x faster, bench/README.md)."""
     k = order.size
     n = rows.shape[1]
     r = np.zeros((k, k))
@@ -106,7 +108,14 @@ def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
         vv = 0.0
         for t in range(j, n):
             vv += x[t] * x[t]
-        for c in range(j + 1, k):
+        first = j + 1
+        while first + 3 < k:
+            _reflect_four(x, rows[order[first]], rows[order[first + 1]], rows[order[first + 2]],
+                          rows[order[first + 3]], j, vv)
+            for c in range(first, first + 4):
+                r[j, c] = rows[order[c]][j]
+            first += 4
+        for c in range(first, k):
             col = rows[order[c]]
             dot = 0.0
             for t in range(j, n):
@@ -116,3 +125,23 @@ def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
                 col[t] -= factor * x[t]
             r[j, c] = col[j]
     return r
+
+
+@numba.njit(cache=True, nogil=True)
+def _reflect_four(x: np.ndarray, c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, j: int,
+                  vv: float) -> None:
+    """Columns c0..c3 (from sample j on) reflected in place by the Householder vector x, ||x||^2 = vv."""
+    d0 = d1 = d2 = d3 = 0.0
+    for t in range(j, x.size):
+        xt = x[t]
+        d0 += xt * c0[t]
+        d1 += xt * c1[t]
+        d2 += xt * c2[t]
+        d3 += xt * c3[t]
+    f0, f1, f2, f3 = 2.0 * d0 / vv, 2.0 * d1 / vv, 2.0 * d2 / vv, 2.0 * d3 / vv
+    for t in range(j, x.size):
+        xt = x[t]
+        c0[t] -= f0 * xt
+        c1[t] -= f1 * xt
+        c2[t] -= f2 * xt
+        c3[t] -= f3 * xt

@@ -417,7 +417,7 @@ class Workers:
             context.set_forkserver_preload([__name__])
             self._executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
         _report(progress, doing.format(", ".join(_job_name(job) for job in jobs)) + f" in {self.workers} processes")
-        costliest_first = sorted(range(len(jobs)), key=lambda index: -EFFECTS[_job_name(jobs[index])].relative_cost)
+        costliest_first = sorted(range(len(jobs)), key=lambda index: -_job_cost(jobs[index]))
         futures = {index: self._executor.submit(function, *jobs[index]) for index in costliest_first}
         try:
             return [futures[index].result() for index in range(len(jobs))]
@@ -448,7 +448,16 @@ def one_blas_thread() -> threadpool_limits:
 
 def _job_name(job: tuple) -> str:
     first = job[0]
+    if isinstance(first, int):
+        return f"{first} operators"
     return first if isinstance(first, str) else first.effect
+
+
+def _job_cost(job: tuple) -> float:
+    """About how long a job takes, to hand out the costliest first: an effect's relative_cost, an
+    operator count's count."""
+    first = job[0]
+    return float(first) if isinstance(first, int) else EFFECTS[_job_name(job)].relative_cost
 
 
 def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics, tests: ResidualTests,
@@ -534,7 +543,7 @@ def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chai
 
 
 def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: Progress = None,
-                      cold: bool = True) -> tuple[Chain, dict[str, object]]:
+                      cold: bool = True, pool: Workers | None = None) -> tuple[Chain, dict[str, object]]:
     """The operator count of the model chosen by the identification BIC and the held-out error together:
     the GPI refitted at every count of OPERATOR_CANDIDATES with the effects held (from the model's GPI and,
     when cold, from a cold fit of every count, the better kept; on a copy thinned to SCREEN_SAMPLES, the chosen count
@@ -543,30 +552,25 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     of them generalises. The BIC admits the counts whose RMS error there is within COUNT_FIT_MARGIN of
     the best (a BIC within 2 N ln(1 + COUNT_FIT_MARGIN): a fit that failed is not chosen for luck on the
     validation record), and of those the lowest validation RMS wins, the smaller count on a near-tie
-    (COUNT_TIE). Returns the
+    (COUNT_TIE). The counts are fitted in the pool's processes when one is given. Returns the
     chain with that count and the report's "operators" block (the choice, the runner-up, every count's
     BIC and validation RMS)."""
     t_i, u_i, y_i = ident
     v_i, w_i = chain.data(t_i, u_i, y_i)
     last, unit = chain.last, chain.last.gpi_parameters.output_unit
     keep = thinned(v_i, SCREEN_SAMPLES)
-    options: dict[int, Chain] = {last.operators: chain}
     cold_fit = attempt("GPI", lambda: fit_gpi(v_i[keep], w_i[keep], output_unit=unit)) if cold else None
     cold_fits = cold_fit.by_count if isinstance(cold_fit, FitResult) else {}
-    for count in OPERATOR_CANDIDATES:
-        if count == last.operators:
+    jobs = [(count, chain, ident, valid, cold_fits.get(count)) for count in OPERATOR_CANDIDATES
+            if count != last.operators]
+    pool = pool or Workers()
+    options: dict[int, Chain] = {last.operators: chain}
+    rows = {last.operators: _count_row(chain, valid)}
+    for (count, *_), outcome in zip(jobs, pool.run(_count_option, jobs, progress, "fitting {}"), strict=True):
+        if isinstance(outcome, str):
+            _report(progress, f"{count} operators: {outcome}")
             continue
-        carried = last.gpi_parameters.replace(a9=last.gpi_parameters.a9 * max(last.operators - 1, 1) / max(count - 1, 1))
-        tries = [attempt("GPI", lambda count=count, initial=initial: fit_gpi(
-            v_i[keep], w_i[keep], operators=count, initial=initial, output_unit=unit))
-            for initial in (carried, cold_fits.get(count)) if initial is not None]
-        found = lowest_cost(fit for fit in tries if not isinstance(fit, NotFitted))
-        if found is None:
-            _report(progress, f"{count} operators: {'; '.join(str(fit) for fit in tries)}")
-            continue
-        options[count] = _with_gpi(chain, found.parameters, count, v_i, w_i, y_i)
-    rows = {count: {"bic": option.bic, "validation_rms_pct": valid.errors(
-        valid.predict(option.model, option.start).predicted).rms_pct} for count, option in options.items()}
+        options[count], rows[count] = outcome
     best_bic = min(row["bic"] for row in rows.values())
     margin = 2.0 * y_i.size * math.log1p(COUNT_FIT_MARGIN)
     admissible = sorted((count for count, row in rows.items() if row["bic"] <= best_bic + margin),
@@ -583,6 +587,30 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     _report(progress, f"operators: {chosen} chosen (runner-up {runner_up}) by BIC and held-out error")
     return found_chain, {"chosen": chosen, "runner_up": runner_up,
                          "by_count": {str(count): rows[count] for count in sorted(rows)}}
+
+
+def _count_option(count: int, chain: Chain, ident: Record, valid: Validation, cold_start: GPIParameters | None,
+                  progress: Progress = None) -> tuple[Chain, dict[str, float]] | str:
+    """The chain with its GPI refitted at `count` operators (effects held; from the chain's GPI carried to
+    the count and from cold_start, the better kept, on the SCREEN_SAMPLES copy) and its report row (BIC,
+    validation RMS); why not, when no fit was found."""
+    t_i, u_i, y_i = ident
+    v_i, w_i = chain.data(t_i, u_i, y_i)
+    last, unit = chain.last, chain.last.gpi_parameters.output_unit
+    keep = thinned(v_i, SCREEN_SAMPLES)
+    carried = last.gpi_parameters.replace(a9=last.gpi_parameters.a9 * max(last.operators - 1, 1) / max(count - 1, 1))
+    tries = [attempt("GPI", lambda initial=initial: fit_gpi(v_i[keep], w_i[keep], operators=count, initial=initial,
+                                                            output_unit=unit))
+             for initial in (carried, cold_start) if initial is not None]
+    found = lowest_cost(fit for fit in tries if not isinstance(fit, NotFitted))
+    if found is None:
+        return "; ".join(str(fit) for fit in tries)
+    option = _with_gpi(chain, found.parameters, count, v_i, w_i, y_i)
+    return option, _count_row(option, valid)
+
+
+def _count_row(option: Chain, valid: Validation) -> dict[str, float]:
+    return {"bic": option.bic, "validation_rms_pct": valid.errors(valid.predict(option.model, option.start).predicted).rms_pct}
 
 
 def _with_gpi(chain: Chain, parameters: GPIParameters, operators: int, v_i: np.ndarray, w_i: np.ndarray,
@@ -647,13 +675,13 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
             chain, current = found.winner.model, found.winner.validation
             _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
             if operators is None and chain.composable:
-                chain, _ = count_by_held_out(chain, ident_record, validation, progress, cold=False)
+                chain, _ = count_by_held_out(chain, ident_record, validation, progress, cold=False, pool=pool)
                 current = validation.errors(validation.predict(chain.model, chain.start).predicted)
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
     counts: dict[str, object] = {}
     if operators is None and chain.last.composable:
-        chain, counts = count_by_held_out(chain, ident_record, validation, progress)
+        chain, counts = count_by_held_out(chain, ident_record, validation, progress, pool=pool)
     changed = bool(chain.effects) or chain.last.operators != base.operators
     start_after = validation.predict(chain.model, chain.start) if changed else start_before
     predicted_after = start_after.predicted
