@@ -90,7 +90,7 @@ def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
     of `rows` one column of length N); `rows` is overwritten. Single-threaded, so a tall-skinny QR costs
     about 2 N k^2 flops whatever the BLAS threading does. Each reflection is applied to four columns per
     pass over the samples (four independent sums, each in the same order as one column at a time, so R is
-    the same to the bit; 1.5-1.75x faster, bench/README.md)."""
+    the same to the bit; 1.3-1.9x faster, bench/README.md)."""
     k = order.size
     n = rows.shape[1]
     r = np.zeros((k, k))

@@ -561,7 +561,7 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     keep = thinned(v_i, SCREEN_SAMPLES)
     cold_fit = attempt("GPI", lambda: fit_gpi(v_i[keep], w_i[keep], output_unit=unit)) if cold else None
     cold_fits = cold_fit.by_count if isinstance(cold_fit, FitResult) else {}
-    jobs = [(count, chain, ident, valid, cold_fits.get(count)) for count in OPERATOR_CANDIDATES
+    jobs = [(count, chain, (v_i, w_i, y_i), valid, cold_fits.get(count)) for count in OPERATOR_CANDIDATES
             if count != last.operators]
     pool = pool or Workers()
     options: dict[int, Chain] = {last.operators: chain}
@@ -589,13 +589,13 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
                          "by_count": {str(count): rows[count] for count in sorted(rows)}}
 
 
-def _count_option(count: int, chain: Chain, ident: Record, valid: Validation, cold_start: GPIParameters | None,
-                  progress: Progress = None) -> tuple[Chain, dict[str, float]] | str:
+def _count_option(count: int, chain: Chain, data: tuple[np.ndarray, np.ndarray, np.ndarray], valid: Validation,
+                  cold_start: GPIParameters | None, progress: Progress = None) -> tuple[Chain, dict[str, float]] | str:
     """The chain with its GPI refitted at `count` operators (effects held; from the chain's GPI carried to
     the count and from cold_start, the better kept, on the SCREEN_SAMPLES copy) and its report row (BIC,
-    validation RMS); why not, when no fit was found."""
-    t_i, u_i, y_i = ident
-    v_i, w_i = chain.data(t_i, u_i, y_i)
+    validation RMS); why not, when no fit was found. data: (v_i, w_i, y_i), what the chain's effects
+    leave of the identification record (chain.data) and its output."""
+    v_i, w_i, y_i = data
     last, unit = chain.last, chain.last.gpi_parameters.output_unit
     keep = thinned(v_i, SCREEN_SAMPLES)
     carried = last.gpi_parameters.replace(a9=last.gpi_parameters.a9 * max(last.operators - 1, 1) / max(count - 1, 1))

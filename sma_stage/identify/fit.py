@@ -401,15 +401,18 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[
     evaluations, status = 1, 0
     column_scale = np.zeros(x.size)
     damping, growth = 1e-3, 2.0
+    at_new_point = True
     while evaluations < max_nfev:
-        gradient = jacobian.T @ residual
-        normal = jacobian.T @ jacobian
-        column_scale = np.maximum(column_scale, np.sqrt(np.diag(normal)))
-        scale = np.where(column_scale > 0.0, column_scale, 1.0)
-        free = ~(((x <= inner_low) & (gradient > 0.0)) | ((x >= inner_high) & (gradient < 0.0)))
-        if not free.any() or np.max(np.abs(gradient[free]) / scale[free]) <= tolerance * math.sqrt(cost):
-            status = 1
-            break
+        if at_new_point:
+            gradient = jacobian.T @ residual
+            normal = jacobian.T @ jacobian
+            column_scale = np.maximum(column_scale, np.sqrt(np.diag(normal)))
+            scale = np.where(column_scale > 0.0, column_scale, 1.0)
+            free = ~(((x <= inner_low) & (gradient > 0.0)) | ((x >= inner_high) & (gradient < 0.0)))
+            if not free.any() or np.max(np.abs(gradient[free]) / scale[free]) <= tolerance * math.sqrt(cost):
+                status = 1
+                break
+            at_new_point = False
         every = bool(free.all())
         system = normal.copy() if every else normal[np.ix_(free, free)]
         system.flat[::system.shape[0] + 1] += damping * scale[free] ** 2
@@ -432,7 +435,7 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[
                 lowered = cost - trial_cost
                 x, residual, cost, jacobian = trial, trial_residual, trial_cost, jac(trial)
                 damping *= max(1.0 / 3.0, 1.0 - (2.0 * lowered / predicted - 1.0) ** 3)
-                growth = 2.0
+                growth, at_new_point = 2.0, True
                 if lowered <= tolerance * (cost + lowered):
                     status = 2
                     break
