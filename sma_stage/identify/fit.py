@@ -48,6 +48,7 @@ FINALISTS = 3  # the best few then converge on a thinned copy of about SCREEN_SA
 SCREEN_SAMPLES = 3000
 SCREEN_MAX_ITERATIONS = 100
 TOLERANCE = 1e-10
+PROFILE_TOLERANCE = 1e-7  # a fit that only compares costs at several values of an effect's parameter
 PROGRESS_INTERVAL_S = 1.0
 NULL_TOLERANCE = 1e-10  # singular values of the column-scaled Jacobian below this (relative) are blind spots
 # Searched: a2..a9 and the density decay per operator a11*a9 (bounded, so that no operator's weight
@@ -347,9 +348,10 @@ class _Search:
 
 
 def _search(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
-            max_iterations: int, progress: Callable[[str], None] | None = None) -> _Search:
-    """Bounded Levenberg-Marquardt (levenberg_marquardt) from start, to TOLERANCE or max_iterations evaluations."""
-    return _converge(u, y, regressors, operators, start, max_iterations, TOLERANCE, progress)
+            max_iterations: int, progress: Callable[[str], None] | None = None,
+            tolerance: float = TOLERANCE) -> _Search:
+    """Bounded Levenberg-Marquardt (levenberg_marquardt) from start, to tolerance or max_iterations evaluations."""
+    return _converge(u, y, regressors, operators, start, max_iterations, tolerance, progress)
 
 
 def _glance(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
@@ -532,7 +534,8 @@ def _starts(u: np.ndarray, y: np.ndarray, operators: int, starts: int | Sequence
 
 def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
                starts: Sequence[GPIParameters], max_iterations: int,
-               progress: Callable[[str], None] | None, refine: bool = True) -> tuple[_Search, int]:
+               progress: Callable[[str], None] | None, refine: bool = True,
+               tolerance: float = TOLERANCE) -> tuple[_Search, int]:
     """Converge several starts on a thinned copy and refine the best on all samples (one start: straight
     to all samples); refine False: the best on the thinned copy (its cost on that copy), for comparing
     operator counts before only the chosen one is refined. Returns the search and the iterations spent."""
@@ -544,7 +547,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
         best = None
         for number, candidate in enumerate(starts, 1):
             found = _search(u[screen], y[screen], regressors[screen], operators, candidate,
-                            max_iterations if whole else SCREEN_MAX_ITERATIONS)
+                            max_iterations if whole else SCREEN_MAX_ITERATIONS, tolerance=tolerance)
             spent += found.iterations
             _report(progress, f"{operators} operators, finalist {number}/{len(starts)} on {screen.size} "
                     f"samples: cost {found.cost:.6g}")
@@ -553,7 +556,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
         if whole or not refine:
             return best, spent
         start = _start_from(best)
-    found = _search(u, y, regressors, operators, start, max_iterations, progress)
+    found = _search(u, y, regressors, operators, start, max_iterations, progress, tolerance)
     _report(progress, f"{operators} operators on {u.size} samples: cost {found.cost:.6g}, "
             f"{found.iterations} iterations")
     return found, spent + found.iterations
@@ -567,7 +570,7 @@ def _start_from(found: _Search) -> GPIParameters:
 def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial: GPIParameters | None = None,
             output_unit: str = "m", regressors: np.ndarray | None = None,
             starts: int | Sequence[GPIParameters] | None = None, max_iterations: int = DEFAULT_MAX_ITERATIONS,
-            progress: Callable[[str], None] | None = None) -> FitResult:
+            progress: Callable[[str], None] | None = None, tolerance: float = TOLERANCE) -> FitResult:
     """Fit a1..a11 to input u [A] and output y [output_unit] (y ~ GPI(u) + regressors @ c).
 
     regressors: (N, m) columns entering linearly (e.g. time for a drift), solved with a10 at every
@@ -582,6 +585,9 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     starts, carried to each other count (same largest threshold; same threshold step), are converged
     on a thinned copy and the best is refined on all samples.
 
+    tolerance: where each search stops (levenberg_marquardt's, relative); a looser one for a fit that
+    only compares costs, e.g. PROFILE_TOLERANCE.
+
     The normalised a1, a5 and largest threshold are held within SCALE_LIMIT output spans during the
     search; a count whose result still fails scale_problems is passed over (the message says so), and
     InputError is raised when every count fails.
@@ -592,12 +598,13 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
         raise InputError(f"initial must be GPIParameters, got {type(initial).__name__}")
     scale = float(np.ptp(y))
     if not math.isfinite(scale) or scale == 1.0:
-        return _fit_gpi(u, y, operators, initial, output_unit, matrix, starts, max_iterations, progress)
+        return _fit_gpi(u, y, operators, initial, output_unit, matrix, starts, max_iterations, progress, tolerance)
     if isinstance(starts, Sequence):
         starts = [output_scaled(start, 1.0 / scale) if isinstance(start, GPIParameters) else start
                   for start in starts]
     initial = None if initial is None else output_scaled(initial, 1.0 / scale)
-    found = _fit_gpi(u, y / scale, operators, initial, output_unit, matrix, starts, max_iterations, progress)
+    found = _fit_gpi(u, y / scale, operators, initial, output_unit, matrix, starts, max_iterations, progress,
+                     tolerance)
     return _output_scaled_result(found, scale, y)
 
 
@@ -624,11 +631,13 @@ def _output_scaled_result(found: FitResult, scale: float, y: np.ndarray) -> FitR
 
 def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIParameters | None, output_unit: str,
              matrix: np.ndarray, starts: int | Sequence[GPIParameters] | None, max_iterations: int,
-             progress: Callable[[str], None] | None) -> FitResult:
+             progress: Callable[[str], None] | None, tolerance: float = TOLERANCE) -> FitResult:
     """fit_gpi on checked data, y of any scale (fit_gpi gives it one of unit span)."""
     clock = time.perf_counter()
     if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
         raise InputError(f"max_iterations must be a positive integer, got {max_iterations!r}")
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (float, int)) or not 0.0 < tolerance < 1.0:
+        raise InputError(f"tolerance must be a number in (0, 1), got {tolerance!r}")
     counts = OPERATOR_CANDIDATES if operators is None else (check_operators(operators),)
     reference = DEFAULT_OPERATORS if DEFAULT_OPERATORS in counts else counts[0]
     if initial is None:
@@ -647,7 +656,7 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
         else:  # a large record: the other counts start from where the reference count's finalists led
             count_starts = _carried([_start_from(fits[reference][0])], reference, count)
         fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress,
-                                 refine=not several)
+                                 refine=not several, tolerance=tolerance)
     fits = {count: fits[count] for count in counts}
     costs = {count: found.cost for count, (found, _) in fits.items()}
     searches = {count: found for count, (found, _) in fits.items()}
@@ -656,7 +665,7 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
     iterations += sum(spent for _, spent in fits.values())
     compared = thinned(u, SCREEN_SAMPLES).size if several else u.size  # the samples the counts were compared on
     if compared < u.size:
-        found = _search(u, y, matrix, chosen, _start_from(found), int(max_iterations), progress)
+        found = _search(u, y, matrix, chosen, _start_from(found), int(max_iterations), progress, tolerance)
         iterations += found.iterations
         params, coefficients = _final_parameters(u, y, matrix, chosen, found, output_unit)
         if scale_problems(params, chosen, y):

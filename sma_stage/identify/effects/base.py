@@ -19,6 +19,8 @@ from scipy.optimize import minimize_scalar
 
 from sma_stage.errors import InputError
 from sma_stage.identify.fit import (
+    PROFILE_TOLERANCE,
+    TOLERANCE,
     FitResult,
     choose_operator_count,
     fit_gpi,
@@ -131,32 +133,33 @@ def check_record(t: np.ndarray, u: np.ndarray, y: np.ndarray | None = None) -> t
 
 
 def fit_or_none(v: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIParameters | None, unit: str,
-                regressors: np.ndarray | None = None, starts: int | None = None) -> FitResult | None:
+                regressors: np.ndarray | None = None, starts: int | None = None,
+                tolerance: float = TOLERANCE) -> FitResult | None:
     """fit_gpi, or None where the data cannot be fitted (e.g. a delay so long that the output falls as
     the input rises)."""
     result = attempt("GPI", lambda: fit_gpi(v, y, operators=operators, initial=initial, output_unit=unit,
-                                            regressors=regressors, starts=starts))
+                                            regressors=regressors, starts=starts, tolerance=tolerance))
     return None if isinstance(result, NotFitted) else result
 
 
 def cold_fit(u: np.ndarray, y: np.ndarray, operators: int, unit: str, warm: FitResult | None,
-             regressors: np.ndarray | None = None) -> FitResult | None:
+             regressors: np.ndarray | None = None, tolerance: float = TOLERANCE) -> FitResult | None:
     """fit_gpi from THOROUGH_STARTS data-derived starts (None where it cannot be fitted). On a record longer
     than SCREEN_SAMPLES they run on a copy thinned to that many (their survey and finalists run on thinned
     copies anyway), and the best is polished on all samples only where it beats `warm` (a fit of the same
-    data from elsewhere) on that copy; None where it does not."""
+    data from elsewhere) on that copy; None where it does not. tolerance: fit_gpi's."""
     keep = even_indices(u.size, SCREEN_SAMPLES)
     if keep.size == u.size:
-        return fit_or_none(u, y, operators, None, unit, regressors, THOROUGH_STARTS)
+        return fit_or_none(u, y, operators, None, unit, regressors, THOROUGH_STARTS, tolerance)
     thinned_regressors = None if regressors is None else regressors[keep]
-    cold = fit_or_none(u[keep], y[keep], operators, None, unit, thinned_regressors, THOROUGH_STARTS)
+    cold = fit_or_none(u[keep], y[keep], operators, None, unit, thinned_regressors, THOROUGH_STARTS, tolerance)
     if cold is None:
         return None
     if warm is not None:
         residual = y[keep] - warm.predicted[keep]
         if float(residual @ residual) <= cold.cost:
             return None
-    return fit_or_none(u, y, operators, cold.parameters, unit, regressors)
+    return fit_or_none(u, y, operators, cold.parameters, unit, regressors, tolerance=tolerance)
 
 
 def pick(fits: Sequence) -> object:
@@ -175,26 +178,27 @@ class Refits:
     """GPI fits (one operator count) on a transformed input u_of(x), x the effect parameter. Each is
     warm-started from the fit at the nearest x so far (the optimum moves smoothly with x) and, when
     thorough, also from fit_gpi's data-derived starts (a start far away can sit in the basin where the
-    plain GPI absorbed the effect); the lower cost is kept."""
+    plain GPI absorbed the effect); the lower cost is kept. The fits behind `cost` only compare costs along x:
+    they stop at PROFILE_TOLERANCE, a fit asked for at the fit's own TOLERANCE."""
 
     def __init__(self, u_of: Callable[[float], np.ndarray], y: np.ndarray, base: FitResult) -> None:
         self.u_of, self.y, self.base = u_of, y, base
         self.fits: dict[float, FitResult | None] = {}
 
-    def fit(self, value: float, thorough: bool = False) -> FitResult | None:
-        """The best fit found at this x (None if it cannot be fitted)."""
+    def fit(self, value: float, thorough: bool = False, tolerance: float = TOLERANCE) -> FitResult | None:
+        """The best fit found at this x (None if it cannot be fitted); one found before unless thorough."""
         if value not in self.fits or thorough:
             u, count, unit = self.u_of(value), self.base.operators, self.base.parameters.output_unit
-            warm = fit_or_none(u, self.y, count, self._nearest(value).parameters, unit)
+            warm = fit_or_none(u, self.y, count, self._nearest(value).parameters, unit, tolerance=tolerance)
             tries = [self.fits.get(value), warm]
             if thorough:
-                tries.append(cold_fit(u, self.y, count, unit, warm))
+                tries.append(cold_fit(u, self.y, count, unit, warm, tolerance=tolerance))
             self.fits[value] = lowest_cost(tries)
         return self.fits[value]
 
     def cost(self, log_value: float, thorough: bool = False) -> float:
         """SSR of the fit at exp(log_value) (inf where it cannot be fitted)."""
-        result = self.fit(math.exp(log_value), thorough)
+        result = self.fit(math.exp(log_value), thorough, PROFILE_TOLERANCE)
         return math.inf if result is None else float(result.cost)
 
     def _nearest(self, value: float) -> FitResult:
