@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -401,6 +402,7 @@ class Workers:
             raise InputError(f"workers must be a positive integer, got {workers!r}")
         self.workers = int(workers)
         self._executor: ProcessPoolExecutor | None = None
+        self._starting: threading.Thread | None = None
 
     def run(self, function: Callable[..., object], jobs: list[tuple], progress: Progress, doing: str) -> list[object]:
         """[function(*job) for job in jobs], in order; progress is told what starts (`doing` with the job's
@@ -412,13 +414,10 @@ class Workers:
                 _report(progress, doing.format(_job_name(job)))
                 results.append(function(*job, progress))
             return results
-        if self._executor is None:
-            context = multiprocessing.get_context("forkserver")
-            context.set_forkserver_preload([__name__])
-            self._executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
+        executor = self._started()
         _report(progress, doing.format(", ".join(_job_name(job) for job in jobs)) + f" in {self.workers} processes")
         costliest_first = sorted(range(len(jobs)), key=lambda index: -_job_cost(jobs[index]))
-        futures = {index: self._executor.submit(function, *jobs[index]) for index in costliest_first}
+        futures = {index: executor.submit(function, *jobs[index]) for index in costliest_first}
         try:
             return [futures[index].result() for index in range(len(jobs))]
         except BrokenProcessPool:
@@ -426,8 +425,37 @@ class Workers:
                              "or a script that calls diagnose with workers > 1 outside "
                              "`if __name__ == '__main__':`); use workers=1") from None
 
+    def start(self) -> None:
+        """Start the worker processes in the background, each loading the fit's compiled kernels (warm_up),
+        while this process goes on (the plain fit): the first round then does not wait for them (about
+        2 s). Nothing with workers 1."""
+        if self.workers > 1 and self._starting is None and self._executor is None:
+            self._starting = threading.Thread(target=self._launch, name="diagnosis-workers", daemon=True)
+            self._starting.start()
+
+    def _launch(self) -> None:
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload([__name__])
+        executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
+        for _ in range(self.workers):
+            executor.submit(warm_up)
+        self._executor = executor
+
+    def _started(self) -> ProcessPoolExecutor:
+        """The executor, once start() has launched it (launched here if it was not)."""
+        self.start()
+        if self._starting is not None:
+            self._starting.join()
+            self._starting = None
+        if self._executor is None:
+            raise InputError("the diagnosis's worker processes could not be started; use workers=1")
+        return self._executor
+
     def close(self) -> None:
         """Stop the worker processes (none were started with workers 1)."""
+        if self._starting is not None:
+            self._starting.join()
+            self._starting = None
         if self._executor is not None:
             self._executor.shutdown(cancel_futures=True)
             self._executor = None
@@ -444,6 +472,12 @@ def one_blas_thread() -> threadpool_limits:
     or for good. The fits' matrices are small (about 12 x 12 after the QR compression): OpenBLAS's threads
     cost more than they give, and with Workers they fight over the cores (bench/README.md, Diagnosis)."""
     return threadpool_limits(1, user_api="blas")
+
+
+def warm_up() -> None:
+    """Load the fit's compiled kernels in this process: a small fit of a loop."""
+    u = np.sin(np.linspace(0.0, 4.0 * np.pi, 60))
+    fit_gpi(u, np.tanh(u), operators=5, max_iterations=3)
 
 
 def _job_name(job: tuple) -> str:
@@ -649,22 +683,23 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
     valid_record = as_record(valid, "validation")
     if not 0 <= scored_from <= valid_record[0].size - 3:
         raise InputError(f"scored_from must leave at least 3 validation samples, got {scored_from}")
-    validation = Validation(*valid_record, scored_from)
-    t_i, u_i, y_i = ident_record
-    t_v, u_v, _ = valid_record
-    if base is None:
-        _report(progress, "fitting the plain GPI on the identification data")
-        base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
-    chain = Chain((no_effect(t_i, u_i, y_i, base),), base)
-    start_before = validation.predict(chain.model, chain.start)
-    predicted_before = start_before.predicted
-    before = validation.errors(predicted_before)
-    tests_before = validation.tests(predicted_before)
-    failed = [name for name, check in tests_before.checks.items() if not check.passed]
-    _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
-                      + (f"failed: {', '.join(failed)}" if failed else "all passed"))
-    rounds, current = [], before
     with pool:
+        pool.start()
+        validation = Validation(*valid_record, scored_from)
+        t_i, u_i, y_i = ident_record
+        t_v, u_v, _ = valid_record
+        if base is None:
+            _report(progress, "fitting the plain GPI on the identification data")
+            base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
+        chain = Chain((no_effect(t_i, u_i, y_i, base),), base)
+        start_before = validation.predict(chain.model, chain.start)
+        predicted_before = start_before.predicted
+        before = validation.errors(predicted_before)
+        tests_before = validation.tests(predicted_before)
+        failed = [name for name, check in tests_before.checks.items() if not check.passed]
+        _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
+                          + (f"failed: {', '.join(failed)}" if failed else "all passed"))
+        rounds, current = [], before
         while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
             tests = validation.tests(validation.predict(chain.model, chain.start).predicted) if rounds else tests_before
             found = _search_round(chain, ident_record, validation, current, tests, operators is None and not rounds,
@@ -677,37 +712,37 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
             if operators is None and chain.composable:
                 chain, _ = count_by_held_out(chain, ident_record, validation, progress, cold=False, pool=pool)
                 current = validation.errors(validation.predict(chain.model, chain.start).predicted)
-    if operators is None and len(chain.effects) > 1:
-        chain = recount_last(chain, ident_record, progress)
-    counts: dict[str, object] = {}
-    if operators is None and chain.last.composable:
-        chain, counts = count_by_held_out(chain, ident_record, validation, progress, pool=pool)
-    changed = bool(chain.effects) or chain.last.operators != base.operators
-    start_after = validation.predict(chain.model, chain.start) if changed else start_before
-    predicted_after = start_after.predicted
-    after = validation.errors(predicted_after) if changed else before
-    tests_after = validation.tests(predicted_after) if changed else tests_before
-    found_order = [found.winner.effect for found in rounds if found.winner is not None]
-    return Diagnosis(
-        effect=found_order[0] if found_order else "none",
-        effects=found_order,
-        evidence=tests_before.evidence(),
-        parameters=chain.parameters,
-        before=before,
-        after=after,
-        base=base,
-        chain=chain,
-        tests_before=tests_before,
-        tests_after=tests_after,
-        candidates=rounds[0].candidates if rounds else [],
-        rounds=rounds,
-        validation_predicted_before=predicted_before,
-        validation_predicted_after=predicted_after,
-        failures=rounds[0].failures if rounds else {},
-        seconds=time.perf_counter() - started,
-        starts={"identification": estimate_start(chain.model, t_i, u_i, y_i), "validation": start_after},
-        operators=counts,
-    )
+        if operators is None and len(chain.effects) > 1:
+            chain = recount_last(chain, ident_record, progress)
+        counts: dict[str, object] = {}
+        if operators is None and chain.last.composable:
+            chain, counts = count_by_held_out(chain, ident_record, validation, progress, pool=pool)
+        changed = bool(chain.effects) or chain.last.operators != base.operators
+        start_after = validation.predict(chain.model, chain.start) if changed else start_before
+        predicted_after = start_after.predicted
+        after = validation.errors(predicted_after) if changed else before
+        tests_after = validation.tests(predicted_after) if changed else tests_before
+        found_order = [found.winner.effect for found in rounds if found.winner is not None]
+        return Diagnosis(
+            effect=found_order[0] if found_order else "none",
+            effects=found_order,
+            evidence=tests_before.evidence(),
+            parameters=chain.parameters,
+            before=before,
+            after=after,
+            base=base,
+            chain=chain,
+            tests_before=tests_before,
+            tests_after=tests_after,
+            candidates=rounds[0].candidates if rounds else [],
+            rounds=rounds,
+            validation_predicted_before=predicted_before,
+            validation_predicted_after=predicted_after,
+            failures=rounds[0].failures if rounds else {},
+            seconds=time.perf_counter() - started,
+            starts={"identification": estimate_start(chain.model, t_i, u_i, y_i), "validation": start_after},
+            operators=counts,
+        )
 
 
 def _report(progress: Progress, message: str) -> None:
