@@ -10,7 +10,7 @@ import pytest
 from synthetic import DEFAULT_EFFECTS, TRUE_OPERATORS, TRUE_PARAMETERS, make_case
 
 from sma_stage.errors import InputError
-from sma_stage.identify.diagnosis import diagnose
+from sma_stage.identify.diagnosis import Workers, diagnose
 from sma_stage.identify.effects import EFFECT_NAMES
 from sma_stage.identify.effects.delay import delayed_input
 from sma_stage.identify.effects.rate import rate_model_output
@@ -90,6 +90,19 @@ def test_workers_must_be_a_positive_whole_number():
     for bad in (0, -1, 1.5, True):
         with pytest.raises(InputError, match="workers must be a positive integer"):
             diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), workers=bad)
+
+
+def test_workers_started_in_the_background_answer_in_order_and_close():
+    """start() launches the worker processes without waiting; run() waits for them and keeps the jobs'
+    order; close() stops them, also when no job was run."""
+    with Workers(2) as pool:
+        pool.start()
+        assert pool.run(divmod, [(7, 2), (9, 4), (5, 5)], None, "{}") == [(3, 1), (2, 1), (1, 0)]
+    assert pool._executor is None and pool._starting is None
+    unused = Workers(2)
+    unused.start()
+    unused.close()
+    assert unused._executor is None and unused._starting is None
 
 
 def test_diagnose_answers_none_when_the_gpi_suffices():

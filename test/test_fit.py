@@ -190,9 +190,21 @@ def test_bad_data_is_refused(u, y, words):
 def test_bad_options_are_refused():
     _, u, y = identification_data(samples=101)
     for options in ({"operators": 0}, {"regressors": np.ones((5, 1))}, {"starts": 0}, {"max_iterations": 0},
-                    {"initial": {"a1": 1.0}}):
+                    {"initial": {"a1": 1.0}}, {"tolerance": 0.0}, {"tolerance": 1.0}, {"tolerance": True},
+                    {"tolerance": float("nan")}):
         with pytest.raises(InputError):
             fit_gpi(u, y, **options)
+
+
+def test_a_looser_tolerance_stops_sooner_near_the_same_minimum():
+    """PROFILE_TOLERANCE (the effect searches' cost comparisons) spends fewer evaluations than the fit's
+    own TOLERANCE from the same start, and its cost is within 1e-4 of the tight one."""
+    _, u, y = identification_data(samples=1001, noise=2e-6)
+    start = TRUTH.replace(a2=1.3 * TRUTH.a2, a6=0.8 * TRUTH.a6, a9=1.2 * TRUTH.a9)
+    tight = fit_gpi(u, y, operators=OPERATORS, initial=start)
+    loose = fit_gpi(u, y, operators=OPERATORS, initial=start, tolerance=fit_module.PROFILE_TOLERANCE)
+    assert loose.iterations < tight.iterations
+    assert tight.cost <= loose.cost <= (1.0 + 1e-4) * tight.cost
 
 
 def exponential_data():
