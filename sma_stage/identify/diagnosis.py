@@ -687,7 +687,6 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
         pool.start()
         validation = Validation(*valid_record, scored_from)
         t_i, u_i, y_i = ident_record
-        t_v, u_v, _ = valid_record
         if base is None:
             _report(progress, "fitting the plain GPI on the identification data")
             base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
@@ -699,19 +698,8 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
         failed = [name for name, check in tests_before.checks.items() if not check.passed]
         _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                           + (f"failed: {', '.join(failed)}" if failed else "all passed"))
-        rounds, current = [], before
-        while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
-            tests = validation.tests(validation.predict(chain.model, chain.start).predicted) if rounds else tests_before
-            found = _search_round(chain, ident_record, validation, current, tests, operators is None and not rounds,
-                                  progress, pool)
-            rounds.append(found)
-            if found.winner is None:
-                break
-            chain, current = found.winner.model, found.winner.validation
-            _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
-            if operators is None and chain.composable:
-                chain, _ = count_by_held_out(chain, ident_record, validation, progress, cold=False, pool=pool)
-                current = validation.errors(validation.predict(chain.model, chain.start).predicted)
+        chain, rounds = _search_rounds(chain, ident_record, validation, before, tests_before, operators is None,
+                                       max_rounds, progress, pool)
         if operators is None and len(chain.effects) > 1:
             chain = recount_last(chain, ident_record, progress)
         counts: dict[str, object] = {}
@@ -743,6 +731,28 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
             starts={"identification": estimate_start(chain.model, t_i, u_i, y_i), "validation": start_after},
             operators=counts,
         )
+
+
+def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: ErrorMetrics,
+                   tests_before: ResidualTests, recount: bool, max_rounds: int, progress: Progress,
+                   pool: Workers) -> tuple[Chain, list[Round]]:
+    """Round after round (_search_round), each on top of the model the one before left, until one adds
+    nothing or max_rounds; with recount, the operator count is chosen again after each round that adds an
+    effect (count_by_held_out). Returns the model found and every round."""
+    rounds: list[Round] = []
+    current = before
+    while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
+        tests = validation.tests(validation.predict(chain.model, chain.start).predicted) if rounds else tests_before
+        found = _search_round(chain, ident, validation, current, tests, recount and not rounds, progress, pool)
+        rounds.append(found)
+        if found.winner is None:
+            break
+        chain, current = found.winner.model, found.winner.validation
+        _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
+        if recount and chain.composable:
+            chain, _ = count_by_held_out(chain, ident, validation, progress, cold=False, pool=pool)
+            current = validation.errors(validation.predict(chain.model, chain.start).predicted)
+    return chain, rounds
 
 
 def _report(progress: Progress, message: str) -> None:
