@@ -10,6 +10,7 @@ import pytest
 from synthetic import DEFAULT_EFFECTS, TRUE_OPERATORS, TRUE_PARAMETERS, make_case
 
 from sma_stage.errors import InputError
+from sma_stage.identify import diagnosis as diagnosis_module
 from sma_stage.identify.diagnosis import Workers, diagnose
 from sma_stage.identify.effects import EFFECT_NAMES
 from sma_stage.identify.effects.delay import delayed_input
@@ -103,6 +104,15 @@ def test_workers_started_in_the_background_answer_in_order_and_close():
     unused.start()
     unused.close()
     assert unused._executor is None and unused._starting is None
+
+
+def test_workers_that_cannot_start_give_a_one_line_error(monkeypatch):
+    def no_processes(*args, **kwargs):
+        raise OSError("[Errno 24] Too many open files")
+
+    monkeypatch.setattr(diagnosis_module, "ProcessPoolExecutor", no_processes)
+    with Workers(2) as pool, pytest.raises(InputError, match=r"could not be started \(\[Errno 24\] Too many open"):
+        pool.run(divmod, [(7, 2), (9, 4)], None, "{}")
 
 
 def test_diagnose_answers_none_when_the_gpi_suffices():

@@ -403,6 +403,7 @@ class Workers:
         self.workers = int(workers)
         self._executor: ProcessPoolExecutor | None = None
         self._starting: threading.Thread | None = None
+        self._failure = "unknown reason"
 
     def run(self, function: Callable[..., object], jobs: list[tuple], progress: Progress, doing: str) -> list[object]:
         """[function(*job) for job in jobs], in order; progress is told what starts (`doing` with the job's
@@ -434,11 +435,15 @@ class Workers:
             self._starting.start()
 
     def _launch(self) -> None:
-        context = multiprocessing.get_context("forkserver")
-        context.set_forkserver_preload([__name__])
-        executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
-        for _ in range(self.workers):
-            executor.submit(warm_up)
+        try:
+            context = multiprocessing.get_context("forkserver")
+            context.set_forkserver_preload([__name__])
+            executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
+            for _ in range(self.workers):
+                executor.submit(warm_up)
+        except (OSError, RuntimeError, ValueError) as error:
+            self._failure = " ".join(str(error).split()) or type(error).__name__
+            return
         self._executor = executor
 
     def _started(self) -> ProcessPoolExecutor:
@@ -448,7 +453,7 @@ class Workers:
             self._starting.join()
             self._starting = None
         if self._executor is None:
-            raise InputError("the diagnosis's worker processes could not be started; use workers=1")
+            raise InputError(f"the diagnosis's worker processes could not be started ({self._failure}); use workers=1")
         return self._executor
 
     def close(self) -> None:
