@@ -9,7 +9,8 @@ import pytest
 
 from sma_stage.errors import InputError
 from sma_stage.identify import fit as fit_module
-from sma_stage.identify.effects.base import SCREEN_SAMPLES, cold_fit
+from sma_stage.identify.effects import base as effects_base
+from sma_stage.identify.effects.base import SCREEN_SAMPLES, Refits, cold_fit
 from sma_stage.identify.fit import (
     SCALE_LIMIT,
     FitResult,
@@ -296,6 +297,28 @@ def test_a_thorough_cold_fit_on_a_long_record_runs_on_a_thinned_copy_and_polishe
     assert found.cost <= 1.001 * good.cost, "the data-derived starts reach the optimum"
     short = cold_fit(u[:SCREEN_SAMPLES], y[:SCREEN_SAMPLES], OPERATORS, "m", good)
     assert short is not None and short.predicted.size == SCREEN_SAMPLES, "a short record: the plain cold fit"
+
+
+def test_refits_compare_costs_at_the_profile_tolerance_and_keep_a_fit_at_the_tight_one(monkeypatch):
+    """Refits.cost (the scalar searches' grids and Brent steps) fits at PROFILE_TOLERANCE; a fit asked for
+    with Refits.fit, the one an effect keeps, at the fit's own TOLERANCE, warm and cold alike."""
+    _, u, y = identification_data(samples=801, noise=1e-6)
+    base = fit_gpi(u, y, operators=OPERATORS, initial=TRUTH)
+    asked = []
+
+    def recording(*args, **kwargs):
+        asked.append(kwargs["tolerance"])
+        return fit_gpi(*args, **kwargs)
+
+    monkeypatch.setattr(effects_base, "fit_gpi", recording)
+    refits = Refits(lambda gain: gain * u, y, base)
+    refits.cost(math.log(1.1), thorough=True)
+    assert asked and set(asked) == {fit_module.PROFILE_TOLERANCE}
+    profiled = refits.fits[1.1]
+    asked.clear()
+    kept = refits.fit(1.1, thorough=True)
+    assert asked and set(asked) == {fit_module.TOLERANCE}
+    assert kept.cost <= profiled.cost, "the tight fit starts where the profile's ended"
 
 
 def _decays(x):
