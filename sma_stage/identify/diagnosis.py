@@ -449,18 +449,19 @@ class Workers:
     def _started(self) -> ProcessPoolExecutor:
         """The executor, once start() has launched it (launched here if it was not)."""
         self.start()
-        if self._starting is not None:
-            self._starting.join()
-            self._starting = None
+        self._wait_for_start()
         if self._executor is None:
             raise InputError(f"the diagnosis's worker processes could not be started ({self._failure}); use workers=1")
         return self._executor
 
-    def close(self) -> None:
-        """Stop the worker processes (none were started with workers 1)."""
+    def _wait_for_start(self) -> None:
         if self._starting is not None:
             self._starting.join()
             self._starting = None
+
+    def close(self) -> None:
+        """Stop the worker processes (none were started with workers 1)."""
+        self._wait_for_start()
         if self._executor is not None:
             self._executor.shutdown(cancel_futures=True)
             self._executor = None
