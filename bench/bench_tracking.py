@@ -32,7 +32,6 @@ import numpy as np
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import (
     DEFAULT_FEEDFORWARD_LEAD_LIMIT,
-    TRACKING_FEEDFORWARD_LEAD_LIMIT,
     imc_gains,
 )
 from sma_stage.identify.pipeline import identify_recording
@@ -189,11 +188,9 @@ def print_hold(identified: Identified, control_step_s: float) -> None:
 
 
 def modes(identified: Identified, control_step_s: float) -> list[Mode]:
-    """The table's modes: every model feedforward (the identified one also at TRACKING_FEEDFORWARD_LEAD_LIMIT, the
-    setting for continuous signals), then every model with the PI loop at the gains the compensator
-    derives from it (imc_gains, the compensator node's default)."""
+    """The table's modes: every model feedforward, then with the PI loop at the gains the compensator derives
+    from it (imc_gains), all at the compensator node's defaults."""
     return ([Mode(model, False) for model in identified.models]
-            + [Mode(identified.models[-1], False, feedforward_lead_limit=TRACKING_FEEDFORWARD_LEAD_LIMIT)]
             + [Mode(model, True, **imc_gains(model.model, control_step_s)) for model in identified.models])
 
 

@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 
 from sma_stage.commands.paper import evaluate_paper
-from sma_stage.control.compensator import TRACKING_FEEDFORWARD_LEAD_LIMIT
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.model import IdentifiedModel, forward, inverse, load_model_file
@@ -261,14 +260,13 @@ def current_steps_pct(commands: np.ndarray) -> tuple[float, float]:
 def node_parameters(settings: EndToEndSettings, work_dir: Path) -> dict[str, dict[str, object]]:
     """Overrides of config/<node>.yaml: the stage sped up by time_scale, every node on its simulated /clock
     (so the identification, the lead and the PI loop count simulated seconds); one stage step per control
-    period, excitation value and setpoint (step_s simulated); feedforward with the lead limit for following a
-    continuous signal (the validation signal); the refit's diagnosis in two processes (nothing drives the stage
+    period, excitation value and setpoint (step_s simulated); feedforward with the compensator's default lead
+    limits; the refit's diagnosis in two processes (nothing drives the stage
     meanwhile, so the stage's pace does not matter then)."""
     return {
         "stage_node": {"rate_hz": settings.rate_hz, "time_scale": settings.time_scale, "command_timeout": 2.0,
                        "use_sim_time": True},
-        "compensator_node": {"rate_hz": settings.control_rate_hz, "feedback": False, "use_sim_time": True,
-                             "feedforward_lead_limit": TRACKING_FEEDFORWARD_LEAD_LIMIT},
+        "compensator_node": {"rate_hz": settings.control_rate_hz, "feedback": False, "use_sim_time": True},
         "identification_node": {"operators": settings.operators, "use_sim_time": True,
                                 "model_file": str(work_dir / "identified_model.yaml"),
                                 "excite_duration": settings.excite_duration_s,
@@ -475,8 +473,7 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
           f"{'holds' if result['compensator_holds_fit'] else 'does NOT hold'} the fitted parameters")
     print(f"   measured stroke {1e6 * low:.1f} to {1e6 * high:.1f} um; the paper's validation signal scaled to "
           f"{100 * settings.stroke_fraction:g} % of it, {settings.run_s:g} s, through the exact inverse alone "
-          f"(feedforward, feedforward_lead_limit {TRACKING_FEEDFORWARD_LEAD_LIMIT:g}: the setting for a continuous "
-          f"signal) and with the PI loop (the compensator's default: gains derived from the model); error "
+          f"(feedforward) and with the PI loop (the compensator's default: gains derived from the model); error "
           f"in % of the stroke, current_cmd's change from one message to the next in % of {MAX_CURRENT_A:g} A, "
           f"the pace achieved in simulated s per wall s (the stage's time_scale when every node keeps up), plots in {out_dir / 'tracking.png'}:")
     print(f"   {'compensator model, mode':40s} {'rms %':>8s} {'max %':>8s} {'step rms %':>11s} {'step p99 %':>11s} "

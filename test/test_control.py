@@ -18,6 +18,7 @@ SHIPPED = load_model_file(DEFAULT_MODEL)
 MODEL = IdentifiedModel(SHIPPED.parameters, SHIPPED.operators)  # its GPI, without the shipped lag
 LIMIT_A = 5.0
 UNLIMITED = 1e12  # a lead limit no step reaches: the exact lead
+EXACT_LEAD = {"feedforward_lead_limit": UNLIMITED, "feedforward_step_lead_limit": UNLIMITED}  # moving or not
 
 
 def inverse_stream(method: str = "exact", limit_a: float = LIMIT_A) -> GPIInverseStream:
@@ -47,8 +48,8 @@ def lag_input(current_a: float, joule_reference_a: float) -> float:
 def test_the_lead_undoes_a_first_order_lag_exactly(joule_reference_a):
     tau_s, dt_s = 8.0, 0.2
     setpoints = slow_setpoints(3000, dt_s)
-    core = Compensator(lagged(tau_s, joule_reference_a), LIMIT_A, feedforward_lead_limit=UNLIMITED,
-                       max_rate_a_per_s=0.0)
+    core = Compensator(lagged(tau_s, joule_reference_a), LIMIT_A, max_rate_a_per_s=0.0,
+                       **EXACT_LEAD)
     reach = core.inverse.input_range  # the lag's drive: the Joule heating's range in the heating reading
     wanted = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=reach).run(setpoints)[0]
     kept = math.exp(-dt_s / tau_s)
@@ -68,7 +69,7 @@ def test_the_lead_tends_to_v_plus_tau_dv_dt_for_short_steps():
     tau_s, dt_s = 8.0, 0.001
     setpoints = slow_setpoints(20000, dt_s)[10000:]
     wanted = inverse_stream().run(setpoints)[0]
-    core = Compensator(lagged(tau_s), LIMIT_A, feedforward_lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+    core = Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0, **EXACT_LEAD)
     currents = np.array([core.command(setpoint, None, dt_s) for setpoint in setpoints])
     expected = wanted[1:] + tau_s * np.diff(wanted) / dt_s
     settled = slice(6000, None)  # the lag starts idle, at 0 A: 6 s to catch up at the current limit
@@ -171,11 +172,12 @@ def test_the_model_runs_on_from_the_state_it_carries():
 
 @pytest.mark.parametrize("measured_m", [None, 0.0], ids=["feedforward", "loop"])
 def test_the_lead_limit_bounds_the_lead_and_the_lag_then_follows_with_tau_over_the_limit(measured_m):
-    """lead_limit bounds the lead with a measurement (the loop; kp = ki = 0 here), feedforward_lead_limit
-    without one."""
+    """lead_limit bounds the lead with a measurement (the loop; kp = ki = 0 here), feedforward_step_lead_limit
+    without one after a step."""
     tau_s, dt_s, limit, other = 10.0, 0.1, 3.0, 7.0
-    limits = {"lead_limit": other, "feedforward_lead_limit": limit} if measured_m is None else \
-        {"lead_limit": limit, "feedforward_lead_limit": other}
+    limits = {"lead_limit": other, "feedforward_lead_limit": other, "feedforward_step_lead_limit": limit} \
+        if measured_m is None else {"lead_limit": limit, "feedforward_lead_limit": other,
+                                    "feedforward_step_lead_limit": other}
     core = Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0, deadband_m=0.0, **limits)
     core.command(0.0, measured_m, 0.0)
     target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
@@ -196,13 +198,60 @@ def test_the_lead_works_over_the_hold_it_is_given_not_the_time_since_the_last_ca
     tau_s, hold_s = 10.0, 5.0
     target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
     for since_s in (0.0, 0.01, 0.7):
-        core = Compensator(lagged(tau_s), LIMIT_A, feedforward_lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+        core = Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0, **EXACT_LEAD)
         current = core.command(1e-4, None, since_s, hold_s=hold_s)
         assert current == pytest.approx(target / (1.0 - math.exp(-hold_s / tau_s)), rel=1e-12), since_s
         assert current < LIMIT_A
-    by_default, given = (Compensator(lagged(tau_s), LIMIT_A, feedforward_lead_limit=UNLIMITED, max_rate_a_per_s=0.0)
+    by_default, given = (Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0, **EXACT_LEAD)
                          for _ in range(2))
     assert by_default.command(1e-4, None, 3.0) == given.command(1e-4, None, 3.0, hold_s=3.0), "default: dt_s"
+
+
+def test_feedforward_does_not_overshoot_a_step_and_the_lag_then_follows_with_its_own_tau():
+    """After a step of the setpoint (and while it holds) the feedforward lead is at feedforward_step_lead_limit,
+    1 by default: the current goes to v* and stays there, and the lag's state approaches it with tau."""
+    tau_s, dt_s = 10.0, 0.1
+    core = Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0)
+    target = inverse_stream().step(1e-4)
+    core.command(0.0, None, 0.0)
+    currents, states = [], []
+    for _ in range(400):
+        currents.append(core.command(1e-4, None, dt_s))
+        states.append(core.thermal.seen)
+    assert np.max(currents) == pytest.approx(target, rel=1e-12)
+    assert np.min(currents) == pytest.approx(target, rel=1e-12)
+    gap = target - np.array(states)
+    assert -np.log(gap[200] / gap[100]) / (100 * dt_s) == pytest.approx(1.0 / tau_s, rel=0.02)
+
+
+@pytest.mark.parametrize("every", [1, 5], ids=["each call", "every fifth call"])
+def test_feedforward_leads_a_moving_setpoint_at_its_own_limit_also_when_published_slower_than_the_loop(every):
+    """A setpoint whose changes agree in sign and rate moves: the lead is at feedforward_lead_limit, as if it
+    were the only limit; published at a fifth of the loop's rate it still moves between its changes."""
+    tau_s, dt_s, steps = 10.0, 0.1, 600
+    ramp = 2e-7 * every * (np.arange(steps) // every)
+    gated = Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0)
+    always = Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0, feedforward_step_lead_limit=10.0)
+    gated_a = np.array([gated.command(setpoint, None, dt_s) for setpoint in ramp])
+    always_a = np.array([always.command(setpoint, None, dt_s) for setpoint in ramp])
+    settled = slice(200, None)  # what the first changes (no rates to compare yet) left behind has decayed
+    assert np.allclose(gated_a[settled], always_a[settled], rtol=1e-6, atol=0.0)
+    assert np.max(gated_a - inverse_stream().run(ramp)[0]) > 0.05, "a lead, not the inverse alone"
+
+
+def test_a_moving_setpoint_that_stops_is_a_step_again():
+    """The setpoint held for more than MOVING_RATE_RATIO of its intervals between changes no longer moves:
+    the lead drops to feedforward_step_lead_limit, and the current to the inverse's output."""
+    tau_s, dt_s = 10.0, 0.1
+    core = Compensator(lagged(tau_s), LIMIT_A, max_rate_a_per_s=0.0)
+    for k in range(50):
+        core.command(2e-6 * k, None, dt_s)
+    led = core.command(2e-6 * 50, None, dt_s)
+    held = [core.command(2e-6 * 50, None, dt_s) for _ in range(3)]
+    target = inverse_stream().run(2e-6 * np.arange(51))[0][-1]
+    assert led > target + 0.01
+    assert held[0] > target, "one interval after the last change it still moves"
+    assert held[-1] == pytest.approx(target, rel=1e-12)
 
 
 @pytest.mark.parametrize("method", ["exact", "analytic"])
@@ -262,7 +311,7 @@ def test_following_the_applied_current_keeps_the_model_where_the_stage_is():
 
 def test_a_step_too_short_to_move_the_lag_gives_the_limited_lead_not_a_division_by_zero():
     """Fuzzing found it: a dt of 8.9e-213 s made the exact lead divide by 1 - exp(-dt / tau) = 0."""
-    core = Compensator(lagged(10.0), LIMIT_A, max_rate_a_per_s=0.0)
+    core = Compensator(lagged(10.0), LIMIT_A, max_rate_a_per_s=0.0, feedforward_step_lead_limit=3.0)
     target = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=(-LIMIT_A, LIMIT_A)).step(1e-4)
     assert core.command(1e-4, None, 8.857633019452313e-213) == pytest.approx(min(3.0 * target, LIMIT_A))
 

@@ -487,7 +487,7 @@ def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
 
 
 def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gains(ros):
-    compensator = compensator_node(ros, rate_hz=2.0, tuning="manual", kp=1.0, ki=0.1)
+    compensator = compensator_node(ros, rate_hz=2.0, tuning="manual", kp=1.0, ki=0.1, feedforward_step_lead_limit=3.0)
     assert compensator.core.tau_s == 0.0
     lag = Effect("thermal_lag", {"tau_s": 11.0})
     assert compensator.set_parameters([Parameter("model", value=model_text(DEFAULT_PARAMS, OPERATORS, lag))])[0].successful

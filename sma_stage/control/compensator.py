@@ -11,8 +11,8 @@ measurement is given (feedback):
     v*        = GPI inverse(target - drift offset now)          within the current limit [A]
     current   = the lead: the drive that brings the thermal lag's state s to v* over one step,
                 s + g (v* - s) with g = 1 / (1 - exp(-dt / tau)), g at most lead_limit with a
-                measurement, feedforward_lead_limit without (drive = v*
-                without a lag), clipped to the current limit, and changed by at most
+                measurement; without one, feedforward_lead_limit while the setpoint moves and
+                feedforward_step_lead_limit otherwise (drive = v* without a lag), clipped to the current limit, and changed by at most
                 max_rate_a_per_s * dt from the previous command (0: no rate limit)
 
 Why the play, the lead limit and the rate limit: the exact inverse of a hysteretic model jumps across
@@ -22,13 +22,18 @@ into a current switching from rail to rail (bench/bench_tracking.py: 157 % of th
 command to the next). With lead_limit g, the lag's state follows v* with the time constant tau / g at
 most, the plant the PI loop sees; `imc_gains` tunes the loop for it (IMC, lambda = 0.7 tau / g). The rate
 limit spreads the jump across the loop over a few steps, which the lag's own time constant makes
-harmless. Without a measurement (feedforward) no noise enters, and the lead has its own limit,
-feedforward_lead_limit, for a trade the loop does not have: on the simulator a higher one tracks a
-continuous signal better (1.86 % RMS at 10 against 2.67 % at 3) and holds a stepped setpoint worse
-(after a step from rest, the faster the wires were heated the further the stage ends from the model's
-static position at the same final current). The defaults (3 and 3, 1 A/s) and the scans behind them are
-in bench/README.md: in the loop a limit of 10 made the stage limit-cycle around a held setpoint (9-14 um
-RMS against 0.8-1.4 um at 3), and 5 did at a rate limit of 0.5 A/s.
+harmless. Without a measurement (feedforward) no noise enters, and the lead has its own limits, for
+a trade the loop does not have: on the simulator a strong lead tracks a continuous signal better, and a
+lead on a step overshoots the current, which holds the setpoint worse (the faster the wires are heated,
+the further the stage ends from the model's static position at the same final current). So the
+feedforward lead tells the two apart: the setpoint *moves* while its last two changes have the same sign
+and rates within a factor MOVING_RATE_RATIO, and its next change is not overdue (at most
+MOVING_RATE_RATIO times the last interval between changes: a setpoint published slower than the loop
+still moves); then feedforward_lead_limit (10) applies. After a step, at a reversal and while the setpoint
+holds, feedforward_step_lead_limit (1: no overshoot; the lag's state approaches v* with tau) applies.
+The defaults (3 in the loop, 10 and 1 in feedforward, 1 A/s) and the scans behind them are in
+bench/README.md: in the loop a limit of 10 made the stage limit-cycle around a held setpoint (9-14 um RMS
+against 0.8-1.4 um at 3), and 5 did at a rate limit of 0.5 A/s.
 
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
 (sma_stage.model.effects):
@@ -90,8 +95,9 @@ def _non_negative(name: str, value: float) -> float:
 
 
 DEFAULT_LEAD_LIMIT = 3.0
-DEFAULT_FEEDFORWARD_LEAD_LIMIT = 3.0
-TRACKING_FEEDFORWARD_LEAD_LIMIT = 10.0  # feedforward_lead_limit for following a continuous signal
+DEFAULT_FEEDFORWARD_LEAD_LIMIT = 10.0  # feedforward, while the setpoint moves
+DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT = 1.0  # feedforward, after a step and while the setpoint holds
+MOVING_RATE_RATIO = 2.0  # a moving setpoint's successive rates of change agree within this factor
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
 LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (bench/README.md)
@@ -136,6 +142,31 @@ class _AtLeast:
         setattr(instance, self.slot, number)
 
 
+class _SetpointMotion:
+    """Whether a setpoint moves continuously (see the module's docstring), from its values and the time
+    between them."""
+
+    def __init__(self) -> None:
+        self.last: float | None = None
+        self.rate = math.nan  # of the last change [m/s]
+        self.interval_s = 0.0  # between the last two changes
+        self.since_s = 0.0  # since the last change
+        self.moving = False
+
+    def moves(self, setpoint: float, dt_s: float) -> bool:
+        """Take the setpoint [m] dt_s [s] after the previous one; whether it moves now."""
+        self.since_s += dt_s
+        previous, self.last = self.last, setpoint
+        if previous is None or setpoint == previous:
+            self.moving = self.moving and self.since_s <= MOVING_RATE_RATIO * self.interval_s
+            return self.moving
+        rate = (setpoint - previous) / self.since_s if self.since_s > 0.0 else math.nan
+        ratio = rate / self.rate
+        self.moving = 1.0 / MOVING_RATE_RATIO <= ratio <= MOVING_RATE_RATIO  # False for NaN
+        self.rate, self.interval_s, self.since_s = rate, self.since_s, 0.0
+        return self.moving
+
+
 class Compensator:
     """Setpoint [m] (and measured position [m]) in, current [A] out; see the module's docstring.
 
@@ -149,16 +180,19 @@ class Compensator:
     deadband_m = _AtLeast()  # half-width of the play on the loop's target [m]
     max_rate_a_per_s = _AtLeast()  # largest change of the current per second [A/s]; 0: no limit
     lead_limit = _AtLeast(1.0)  # the lead's largest gain on a change of v* with a measurement (PI loop) [A/A]
-    feedforward_lead_limit = _AtLeast(1.0)  # the same without a measurement (feedforward) [A/A]
+    feedforward_lead_limit = _AtLeast(1.0)  # the same without a measurement, while the setpoint moves [A/A]
+    feedforward_step_lead_limit = _AtLeast(1.0)  # without a measurement, while the setpoint does not move [A/A]
 
     def __init__(self, model: IdentifiedModel, max_current_a: float = 5.0, method: str = "exact",
                  kp: float = 0.0, ki: float = 0.0, lead_limit: float = DEFAULT_LEAD_LIMIT,
                  deadband_m: float = DEFAULT_DEADBAND_M, max_rate_a_per_s: float = DEFAULT_MAX_RATE_A_PER_S,
-                 feedforward_lead_limit: float = DEFAULT_FEEDFORWARD_LEAD_LIMIT) -> None:
+                 feedforward_lead_limit: float = DEFAULT_FEEDFORWARD_LEAD_LIMIT,
+                 feedforward_step_lead_limit: float = DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT) -> None:
         self.kp = kp
         self.ki = ki
         self.lead_limit = lead_limit
         self.feedforward_lead_limit = feedforward_lead_limit
+        self.feedforward_step_lead_limit = feedforward_step_lead_limit
         self.deadband_m = deadband_m
         self.max_rate_a_per_s = max_rate_a_per_s
         self.set_model(model, max_current_a, method)
@@ -215,6 +249,7 @@ class Compensator:
         drift_state = self._carried_state(self._drift, state)
         self.drift_elapsed_s = float(drift_state.values[0]) if drift_state is not None and drift_state.values else 0.0
         self._hold_s = 0.0
+        self._setpoint = _SetpointMotion()
 
     def _carried_state(self, effect: Effect | None, state: ModelState | None) -> EffectState | None:
         """The effect's carried state in the model's state, if any."""
@@ -243,8 +278,11 @@ class Compensator:
         if measured_m is not None:
             self.target_m = self._pi_target(setpoint, self._bounded(finite_number("measured_m", measured_m)), dt)
         self.drift_elapsed_s += dt
+        moving = self._setpoint.moves(setpoint, dt)
         lag_input = self._inverse.step(self.target_m - self._drift_offset())
-        limit = self._feedforward_lead_limit if measured_m is None else self._lead_limit
+        limit = self._lead_limit
+        if measured_m is None:
+            limit = self._feedforward_lead_limit if moving else self._feedforward_step_lead_limit
         self.command_a = self._rate_limited(self._lead(lag_input, dt, limit), dt)
         return self.command_a
 

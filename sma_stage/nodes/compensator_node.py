@@ -10,7 +10,8 @@ config/model_default.yaml. A new model is checked whole and refused whole (the o
 Control law: target = setpoint + kp e + integral(ki e dt), e = setpoint - measured position [m]
 (feedback only, the default; target = setpoint otherwise), through a play of half-width deadband; the
 model's inverse gives the current, with the lead that undoes a thermal lag (its gain at most
-lead_limit in the loop, feedforward_lead_limit without it) and the drift's offset taken off, rate-limited to max_current_rate (see
+lead_limit in the loop; without it feedforward_lead_limit while the setpoint moves and
+feedforward_step_lead_limit after a step) and the drift's offset taken off, rate-limited to max_current_rate (see
 sma_stage.control.compensator). With tuning `imc` (the default) kp and ki are derived from the model in
 force (its lag, lead_limit and the control period 1/rate_hz: control.compensator.imc_gains) and follow
 every new model; with `manual` the kp and ki parameters are used. The integral
@@ -40,6 +41,7 @@ from sma_stage.control import Compensator
 from sma_stage.control.compensator import (
     DEFAULT_DEADBAND_M,
     DEFAULT_FEEDFORWARD_LEAD_LIMIT,
+    DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT,
     DEFAULT_LEAD_LIMIT,
     DEFAULT_MAX_RATE_A_PER_S,
     checked_gains,
@@ -84,7 +86,9 @@ COMPENSATOR_PARAMS = [
     Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (tuning manual)", 0.0, 10000.0),
     Param("lead_limit", DEFAULT_LEAD_LIMIT, "largest gain of the thermal-lag lead in the PI loop [A/A]", 1.0, 1e6),
     Param("feedforward_lead_limit", DEFAULT_FEEDFORWARD_LEAD_LIMIT, "largest gain of the thermal-lag lead in "
-          "feedforward (feedback false) [A/A]", 1.0, 1e6),
+          "feedforward (feedback false) while the setpoint moves continuously [A/A]", 1.0, 1e6),
+    Param("feedforward_step_lead_limit", DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT, "the same after a step of the "
+          "setpoint and while it holds [A/A] (1: no overshoot of the current)", 1.0, 1e6),
     Param("deadband", DEFAULT_DEADBAND_M, "half-width of the play on the loop's target [m] (a few sensor noise "
           "sigmas)", 0.0, 1e-2),
     Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of node-clock time]; "
@@ -156,7 +160,9 @@ class CompensatorNode(Node):
         else:
             gains = checked_gains(values["kp"], values["ki"])
         return {**gains, "lead_limit": float(values["lead_limit"]),
-                "feedforward_lead_limit": float(values["feedforward_lead_limit"]), "deadband_m": float(values["deadband"]),
+                "feedforward_lead_limit": float(values["feedforward_lead_limit"]),
+                "feedforward_step_lead_limit": float(values["feedforward_step_lead_limit"]),
+                "deadband_m": float(values["deadband"]),
                 "max_rate_a_per_s": float(values["max_current_rate"])}
 
     def build_core(self, model: IdentifiedModel, values: dict[str, object]) -> Compensator:
