@@ -12,8 +12,9 @@ measurement is given (feedback):
     current   = the lead: the drive that brings the thermal lag's state s to v* over one step,
                 s + g (v* - s) with g = 1 / (1 - exp(-dt / tau)), g at most lead_limit with a
                 measurement; without one, feedforward_lead_limit while the setpoint moves and
-                feedforward_step_lead_limit otherwise (drive = v* without a lag), clipped to the current limit, and changed by at most
-                max_rate_a_per_s * dt from the previous command (0: no rate limit)
+                feedforward_step_lead_limit otherwise (drive = v* without a lag), clipped to the
+                current limit, and changed by at most max_rate_a_per_s * dt from the previous
+                command (0: no rate limit)
 
 Why the play, the lead limit and the rate limit: the exact inverse of a hysteretic model jumps across
 the loop's width at every reversal of its target, and the exact lead multiplies a change of v* by
@@ -26,10 +27,11 @@ harmless. Without a measurement (feedforward) no noise enters, and the lead has 
 a trade the loop does not have: on the simulator a strong lead tracks a continuous signal better, and a
 lead on a step overshoots the current, which holds the setpoint worse (the faster the wires are heated,
 the further the stage ends from the model's static position at the same final current). So the
-feedforward lead tells the two apart: the setpoint *moves* while its last two changes have the same sign
-and rates within a factor MOVING_RATE_RATIO, and its next change is not overdue (at most
-MOVING_RATE_RATIO times the last interval between changes: a setpoint published slower than the loop
-still moves); then feedforward_lead_limit (10) applies. After a step, at a reversal and while the setpoint
+feedforward lead tells the two apart: the setpoint *moves* while its change over the last MOTION_WINDOW_S
+(1 s) and its change over the second before agree in sign and within a factor MOVING_RATE_RATIO (2);
+then feedforward_lead_limit (10) applies. The windows make it indifferent to when each setpoint message
+arrives (a stream published slower than the loop, or in bursts, still moves), as long as it comes at
+least every half second. After a step, at a reversal and while the setpoint
 holds, feedforward_step_lead_limit (1: no overshoot; the lag's state approaches v* with tau) applies.
 The defaults (3 in the loop, 10 and 1 in feedforward, 1 A/s) and the scans behind them are in
 bench/README.md: in the loop a limit of 10 made the stage limit-cycle around a held setpoint (9-14 um RMS
@@ -56,6 +58,7 @@ the lag and the drift start.
 
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -97,7 +100,8 @@ def _non_negative(name: str, value: float) -> float:
 DEFAULT_LEAD_LIMIT = 3.0
 DEFAULT_FEEDFORWARD_LEAD_LIMIT = 10.0  # feedforward, while the setpoint moves
 DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT = 1.0  # feedforward, after a step and while the setpoint holds
-MOVING_RATE_RATIO = 2.0  # a moving setpoint's successive rates of change agree within this factor
+MOTION_WINDOW_S = 1.0  # a moving setpoint's change is compared over two windows this long [s]
+MOVING_RATE_RATIO = 2.0  # and agrees within this factor
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
 LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (bench/README.md)
@@ -143,28 +147,32 @@ class _AtLeast:
 
 
 class _SetpointMotion:
-    """Whether a setpoint moves continuously (see the module's docstring), from its values and the time
-    between them."""
+    """Whether a setpoint moves continuously (see the module's docstring): its changes over the last two
+    MOTION_WINDOW_S windows agree in sign and within a factor MOVING_RATE_RATIO."""
 
     def __init__(self) -> None:
-        self.last: float | None = None
-        self.rate = math.nan  # of the last change [m/s]
-        self.interval_s = 0.0  # between the last two changes
-        self.since_s = 0.0  # since the last change
-        self.moving = False
+        self.now_s = 0.0
+        self.times_s: list[float] = []  # when the setpoint took each of `values` [s]
+        self.values: list[float] = []
 
     def moves(self, setpoint: float, dt_s: float) -> bool:
         """Take the setpoint [m] dt_s [s] after the previous one; whether it moves now."""
-        self.since_s += dt_s
-        previous, self.last = self.last, setpoint
-        if previous is None or setpoint == previous:
-            self.moving = self.moving and self.since_s <= MOVING_RATE_RATIO * self.interval_s
-            return self.moving
-        rate = (setpoint - previous) / self.since_s if self.since_s > 0.0 else math.nan
-        ratio = rate / self.rate
-        self.moving = 1.0 / MOVING_RATE_RATIO <= ratio <= MOVING_RATE_RATIO  # False for NaN
-        self.rate, self.interval_s, self.since_s = rate, self.since_s, 0.0
-        return self.moving
+        self.now_s += dt_s
+        if not self.values or setpoint != self.values[-1]:
+            self.times_s.append(self.now_s)
+            self.values.append(setpoint)
+        oldest = self.now_s - 2.0 * MOTION_WINDOW_S
+        kept_from = bisect.bisect_right(self.times_s, oldest) - 1
+        if kept_from < 0:
+            return False
+        del self.times_s[:kept_from], self.values[:kept_from]
+        middle = self._at(self.now_s - MOTION_WINDOW_S)
+        before = middle - self.values[0]
+        ratio = (setpoint - middle) / before if before != 0.0 else math.nan
+        return 1.0 / MOVING_RATE_RATIO <= ratio <= MOVING_RATE_RATIO  # False for NaN
+
+    def _at(self, time_s: float) -> float:
+        return self.values[bisect.bisect_right(self.times_s, time_s) - 1]
 
 
 class Compensator:
