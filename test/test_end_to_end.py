@@ -103,6 +103,9 @@ def stage_backend(request, tmp_path):
         return
     with LoopbackRig(time_scale=TIME_SCALE) as rig:
         data = rig.simulator_equivalent(yaml.safe_load((CONFIG_DIR / "hardware_example.yaml").read_text()))
+        # The rig answers from this process: with the whole suite on two cores a reply once came later than the
+        # example's 200 ms, the bridge faulted (output off) and the excitation drove nothing
+        data["timeout_ms"] = 2000.0
         (tmp_path / "hardware.yaml").write_text(yaml.safe_dump(data))
         # command_timeout longer than the test: on instruments the watchdog deactivates the stage, and whether it
         # fired between the excitation and the setpoint would depend on how long the refit took
