@@ -30,10 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sma_stage.control import Compensator
-from sma_stage.control.compensator import (
-    DEFAULT_FEEDFORWARD_LEAD_LIMIT,
-    imc_gains,
-)
+from sma_stage.control.compensator import imc_gains
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import make_series
 from sma_stage.model import IdentifiedModel
@@ -83,14 +80,11 @@ class Mode:
     feedback: bool
     kp: float = 0.0
     ki: float = 0.0
-    feedforward_lead_limit: float = DEFAULT_FEEDFORWARD_LEAD_LIMIT
 
     @property
     def name(self) -> str:
         """How the table names it."""
         loop = f"PI kp {self.kp:.3g} ki {self.ki:.3g}/s" if self.feedback else "feedforward"
-        if not self.feedback and self.feedforward_lead_limit != DEFAULT_FEEDFORWARD_LEAD_LIMIT:
-            loop += f", feedforward_lead_limit {self.feedforward_lead_limit:g}"
         return f"{self.model.name}, {loop}"
 
 
@@ -128,8 +122,7 @@ def setpoints(stroke_m: tuple[float, float], t_s: np.ndarray) -> np.ndarray:
 
 def compensator_for(mode: Mode) -> Compensator:
     """The control core for the mode's model and gains."""
-    return Compensator(mode.model.model, MAX_CURRENT_A, kp=mode.kp, ki=mode.ki,
-                       feedforward_lead_limit=mode.feedforward_lead_limit)
+    return Compensator(mode.model.model, MAX_CURRENT_A, kp=mode.kp, ki=mode.ki)
 
 
 def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[float, float, float, float]:

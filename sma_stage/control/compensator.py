@@ -31,8 +31,8 @@ feedforward lead tells the two apart: the setpoint *moves* while its change over
 (1 s) and its change over the second before agree in sign and within a factor MOVING_RATE_RATIO (2);
 then feedforward_lead_limit (10) applies. The windows make it indifferent to when each setpoint message
 arrives (a stream published slower than the loop, or in bursts, still moves), as long as it comes at
-least every half second. After a step, at a reversal and while the setpoint
-holds, feedforward_step_lead_limit (1: no overshoot; the lag's state approaches v* with tau) applies.
+least every half second. After a step, at a reversal and while the setpoint holds,
+feedforward_step_lead_limit (1: no overshoot; the lag's state approaches v* with tau) applies.
 The defaults (3 in the loop, 10 and 1 in feedforward, 1 A/s) and the scans behind them are in
 bench/README.md: in the loop a limit of 10 made the stage limit-cycle around a held setpoint (9-14 um RMS
 against 0.8-1.4 um at 3), and 5 did at a rate limit of 0.5 A/s.
