@@ -125,6 +125,8 @@ def test_pi_removes_a_constant_offset_of_the_plant():
     (lambda core: Compensator(MODEL, -1.0), "max_current_a"),
     (lambda core: Compensator(MODEL, LIMIT_A, lead_limit=0.5), "lead_limit"),
     (lambda core: Compensator(MODEL, LIMIT_A, feedforward_lead_limit=float("nan")), "feedforward_lead_limit"),
+    (lambda core: Compensator(MODEL, LIMIT_A, feedforward_step_lead_limit=0.5), "feedforward_step_lead_limit"),
+    (lambda core: setattr(core, "feedforward_step_lead_limit", float("inf")), "feedforward_step_lead_limit"),
     (lambda core: setattr(core, "deadband_m", -1e-6), "deadband_m"),
     (lambda core: Compensator("not a model"), "IdentifiedModel"),
     (lambda core: Compensator(MODEL, LIMIT_A, ""), "inverse method"),  # fuzzing: was an AttributeError

@@ -1019,7 +1019,8 @@ def test_compensator_callbacks_survive_any_message_and_refused_parameters_change
         floats.map(lambda x: ("current_applied", Float64(data=x))),
         st.tuples(st.lists(st.sampled_from(["stage_x", "other", ""]), max_size=3), st.lists(floats, max_size=3)).map(
             lambda names_positions: ("joint_states", JointState(name=names_positions[0], position=names_positions[1]))))
-    parameters = st.tuples(st.sampled_from(["kp", "ki", "max_current", "lead_limit", "deadband", "tuning", "model",
+    parameters = st.tuples(st.sampled_from(["kp", "ki", "max_current", "lead_limit", "feedforward_lead_limit",
+                                            "feedforward_step_lead_limit", "deadband", "tuning", "model",
                                             "inverse_method", "max_current_rate", "rate_hz"]),
                            st.one_of(floats, st.integers(-10**6, 10**6), st.text(max_size=5), st.booleans()))
 
