@@ -20,7 +20,7 @@ import multiprocessing
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 
@@ -28,6 +28,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from sma_stage.errors import InputError
+from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.effects import (
     EFFECT_NAMES,
     EFFECTS,
@@ -64,6 +65,7 @@ REFINE_SWEEPS = 1  # backfitting sweeps over the added effects after each later 
 EXCLUSIVE = {"thermal_lag": ("wire_thermal",), "wire_thermal": ("thermal_lag",)}  # one thermal reading per model
 COUNT_FIT_MARGIN = 0.10  # operator counts whose identification RMS is within 10 % of the best are admitted
 COUNT_TIE = 0.01  # validation RMS within 1 % of the lowest: the smaller operator count is kept
+CANCEL_POLL_S = 0.05  # how often a wait for the worker processes looks for a cancellation [s]
 RECOUNTED = 2  # accepted candidates (best validation first) whose operator count is chosen again
 # Which residual test points at which effect (the strongest first; ties keep this order).
 POINTERS: dict[str, tuple[str, ...]] = {
@@ -420,11 +422,31 @@ class Workers:
         costliest_first = sorted(range(len(jobs)), key=lambda index: -_job_cost(jobs[index]))
         futures = {index: executor.submit(function, *jobs[index]) for index in costliest_first}
         try:
-            return [futures[index].result() for index in range(len(jobs))]
+            return [self._result(futures[index]) for index in range(len(jobs))]
         except BrokenProcessPool:
             raise InputError("the diagnosis's worker processes ended before answering (killed, out of memory, "
                              "or a script that calls diagnose with workers > 1 outside "
                              "`if __name__ == '__main__':`); use workers=1") from None
+
+    @staticmethod
+    def _result(future: Future) -> object:
+        """A job's result, waited for in slices so that a cancellation (sma_stage.identify.cancel) is seen."""
+        while True:
+            try:
+                return future.result(timeout=CANCEL_POLL_S)
+            except TimeoutError:
+                check_cancelled()
+
+    def terminate(self) -> None:
+        """End the worker processes now, their running jobs with them (a cancelled diagnosis)."""
+        self._wait_for_start()
+        executor, self._executor = self._executor, None
+        if executor is None:
+            return
+        processes = list((getattr(executor, "_processes", None) or {}).values())  # no public handle before 3.14
+        for process in processes:
+            process.terminate()
+        executor.shutdown(wait=True, cancel_futures=True)
 
     def start(self) -> None:
         """Start the worker processes in the background, each loading the fit's compiled kernels (warm_up),
@@ -469,8 +491,11 @@ class Workers:
     def __enter__(self) -> Workers:
         return self
 
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
+    def __exit__(self, kind: type[BaseException] | None, *exc_info: object) -> None:
+        if kind is None:
+            self.close()
+        else:  # an error, a cancellation or an interrupt: the running jobs are not waited for
+            self.terminate()
 
 
 def one_blas_thread() -> threadpool_limits:
@@ -762,5 +787,6 @@ def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: 
 
 
 def _report(progress: Progress, message: str) -> None:
+    check_cancelled()
     if progress is not None:
         progress(message)

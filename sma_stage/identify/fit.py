@@ -31,6 +31,7 @@ from scipy.optimize import OptimizeResult
 
 from sma_stage.errors import InputError
 from sma_stage.identify._sensitivity import SENSITIVITY_COLUMNS, householder_r, play_sensitivities
+from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.initial_guess import start_points
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.forward import as_signal, forward, initial_states
@@ -405,6 +406,7 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[
     damping, growth = 1e-3, 2.0
     at_new_point = True
     while evaluations < max_nfev:
+        check_cancelled()
         if at_new_point:
             gradient = jacobian.T @ residual
             normal = jacobian.T @ jacobian

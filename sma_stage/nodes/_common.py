@@ -1,11 +1,14 @@
 """What the three nodes share: parameter declaration with descriptors, QoS profiles, and a main()
-that turns a bad start-up parameter into a one-line error and shuts down quietly on Ctrl-C/SIGTERM."""
+that turns a bad start-up parameter into a one-line error and, on Ctrl-C/SIGTERM, stops spinning, closes the
+nodes and shuts down quietly."""
 
 from __future__ import annotations
 
+import faulthandler
 import gc
 import math
 import re
+import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -28,9 +31,11 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 from sma_stage.errors import InputError
+from sma_stage.identify.cancel import cancellable
 
 # Commands: reliable, depth 10. Stage state: published reliable (a best-effort subscriber is compatible
 # with it), subscribed best effort (compatible with any publisher: the simulator, a hardware bridge, a
@@ -174,6 +179,7 @@ class WorkerService:
 
     def __init__(self, owner: Node, service_type: type, name: str, callback: Callable) -> None:
         self._callback = callback
+        self.cancel = threading.Event()  # set by close(): a running callback's fit raises Cancelled
         self._node = Node(f"_{owner.get_name()}_{name}_worker", namespace=owner.get_namespace(),
                           context=owner.context, start_parameter_services=False)
         # Reentrant: a request is served while another one's callback runs, and the wake-up gets through.
@@ -194,7 +200,8 @@ class WorkerService:
 
         def work() -> None:
             try:
-                outcome["response"] = self._callback(request, response)
+                with cancellable(self.cancel):
+                    outcome["response"] = self._callback(request, response)
             except BaseException as error:  # noqa: BLE001 -- raised again in the executor
                 outcome["error"] = error
             finally:
@@ -218,9 +225,11 @@ class WorkerService:
                 raise  # not the shutdown race: rcl refused the wait set for another reason
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Stop serving (waits up to timeout_s for a running callback) and destroy the helper node; idempotent."""
+        """Stop serving: cancel a running callback (sma_stage.identify.cancel) and wait up to timeout_s for it to
+        answer, then destroy the helper node; idempotent."""
         if self._thread is None:
             return
+        self.cancel.set()
         self._executor.shutdown(timeout_sec=timeout_s)
         self._thread.join(timeout=timeout_s)
         self._thread = None
@@ -228,11 +237,53 @@ class WorkerService:
 
 
 EXECUTORS = ("events", "single")
-SPIN_SLICE_S = 1.0
+SPIN_SLICE_S = 0.1  # the spin loop looks at a stop request (and the context) this often [s]
+TEARDOWN_LIMIT_S = 8.0  # a process still there this long after a stop request dumps its threads and exits 1
+
+
+class StopRequest:
+    """SIGINT and SIGTERM for a node process, in place of rclpy's handlers (which shut the context down from
+    another thread at once, under running callbacks: publishes then fail, the last log lines cannot reach
+    /rosout, and a KeyboardInterrupt can land inside a callback).
+
+    While the nodes are built (`starting`), a signal raises KeyboardInterrupt, so a long start (a first,
+    uncached compile of the simulator, a connection) ends at once. While they spin, it only asks the spin loop
+    to end: no callback is interrupted, and the nodes then close with their context still valid. While they
+    close, further signals are ignored: a close is bounded by the instruments' timeouts and by
+    TEARDOWN_LIMIT_S."""
+
+    def __init__(self) -> None:
+        self.phase = "starting"
+        self.signal_name: str | None = None
+        self._previous: dict[int, object] = {}
+
+    def install(self) -> None:
+        """Handle SIGINT and SIGTERM in this process (main thread only)."""
+        for number in (signal.SIGINT, signal.SIGTERM):
+            self._previous[number] = signal.signal(number, self._on_signal)
+
+    def restore(self) -> None:
+        """Give SIGINT and SIGTERM back their previous handlers."""
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+        self._previous.clear()
+
+    def _on_signal(self, number: int, frame: object) -> None:
+        self.signal_name = self.signal_name or signal.Signals(number).name
+        if self.phase == "starting":
+            raise KeyboardInterrupt
+        if self.phase == "spinning":
+            self.phase = "stopping"
+
+    @property
+    def spinning(self) -> bool:
+        """True until a signal asked the spin loop to end."""
+        return self.phase == "spinning"
 
 
 def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, executor_kind: str = "events") -> int:
-    """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, shut down; 2 and one line for bad parameters.
+    """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, close and shut down; 2 and one line for bad
+    parameters.
 
     executor_kind "events": rclpy's EventsExecutor (C++; a third to a half of the SingleThreadedExecutor's
     CPU per message, bench/README.md), "single": the SingleThreadedExecutor.
@@ -242,16 +293,21 @@ def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, 
 
 def run_nodes(makers: Sequence[Callable[..., Node]], args: Sequence[str] | None = None,
               executor_kind: str = "events") -> int:
-    """run_node for several nodes in one process and one executor (built in order, destroyed in reverse), as
-    a C++ component container holds them; each takes its own section of a parameter file by its name."""
+    """run_node for several nodes in one process and one executor (built in order, closed and destroyed in
+    reverse), as a C++ component container holds them; each takes its own section of a parameter file by its
+    name. On SIGINT/SIGTERM (StopRequest) the executor stops taking callbacks, then each node's close() runs
+    on a valid context, then the nodes are destroyed and the context shut down."""
     try:
-        rclpy.init(args=args)
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as error:  # noqa: BLE001 -- rcl reports a bad --ros-args or params file this way
         print(f"error: cannot start ROS: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
+    stop = StopRequest()
+    stop.install()
     nodes: list[Node] = []
     executor = None
     building = makers[0]
+    status = 0
     try:
         executor = make_executor(executor_kind)
         for building in makers:
@@ -259,27 +315,34 @@ def run_nodes(makers: Sequence[Callable[..., Node]], args: Sequence[str] | None 
             executor.add_node(nodes[-1])
         gc.collect()
         gc.freeze()  # what start-up built lives on: the collector's passes stop walking it
-        spin(executor)
+        stop.phase = "spinning"
+        spin_while(executor, lambda: stop.spinning)
     except (InputError, ParameterException) as error:
         name = getattr(building, "NODE_NAME", "sma_stage")
         rclpy.logging.get_logger(name).error(f"cannot start: {' '.join(str(error).split())}")
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
+        status = 2
+    except KeyboardInterrupt:
         pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # Ctrl-C/SIGTERM shut the context down under a running callback (e.g. "publisher's context is invalid")
     finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=1.0)
-        for node in reversed(nodes):
-            close = getattr(node, "close", None)
-            if close is not None:
-                close()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+        stop.phase = "closing"
+        faulthandler.dump_traceback_later(TEARDOWN_LIMIT_S, exit=True)
+        close_all(nodes, executor)
+        stop.restore()
+    return status
+
+
+def close_all(nodes: Sequence[Node], executor: object | None) -> None:
+    """Close the nodes (their close(), on a context still valid), stop the executor, destroy the nodes in
+    reverse order and shut the context down."""
+    for node in reversed(nodes):
+        close = getattr(node, "close", None)
+        if close is not None:
+            close()
+    if executor is not None:
+        executor.shutdown(timeout_sec=1.0)
+    for node in reversed(nodes):
+        node.destroy_node()
+    rclpy.try_shutdown()
 
 
 def make_executor(kind: str, context: Context | None = None) -> object:
@@ -293,14 +356,15 @@ def make_executor(kind: str, context: Context | None = None) -> object:
     raise InputError(f"executor must be one of {', '.join(EXECUTORS)}, got {kind!r}")
 
 
-def spin(executor: object, context: Context | None = None) -> None:
-    """Spin executor until its context (the default context when None) shuts down."""
-    if isinstance(executor, SingleThreadedExecutor):
-        executor.spin()
-        return
+def spin_while(executor: object, running: Callable[[], bool], context: Context | None = None) -> None:
+    """Spin executor while running() is true and its context (the default context when None) is not shut
+    down, looking at both every SPIN_SLICE_S."""
     never = Future()
-    while rclpy.ok(context=context):  # EventsExecutor.spin() busy-waits in rclpy 7.1.x; this call does not
-        executor.spin_until_future_complete(never, timeout_sec=SPIN_SLICE_S)
+    while running() and rclpy.ok(context=context):
+        if isinstance(executor, SingleThreadedExecutor):
+            executor.spin_once(timeout_sec=SPIN_SLICE_S)
+        else:  # EventsExecutor.spin() busy-waits in rclpy 7.1.x; this call does not
+            executor.spin_until_future_complete(never, timeout_sec=SPIN_SLICE_S)
 
 
 def exit_with(code: int) -> None:

@@ -39,6 +39,7 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from sma_stage.errors import InputError
+from sma_stage.identify.cancel import Cancelled
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
@@ -472,6 +473,10 @@ class IdentificationNode(Node):
             response.success, response.message = False, f"refit refused: {error}"
             self.get_logger().warning(response.message)
             return response
+        except Cancelled:
+            response.success, response.message = False, "refit cancelled: the node is stopping (nothing written)"
+            self.get_logger().warning(f"~/{response.message}")
+            return response
         except Exception as error:  # noqa: BLE001 -- a failing fit must not take the node down
             response.success = False
             response.message = f"refit failed: {type(error).__name__}: {' '.join(str(error).split())}"
@@ -489,6 +494,7 @@ class IdentificationNode(Node):
     def refit(self) -> dict:
         """Identify, write the model file, push the model; the report (InputError when refused)."""
         series = self.snapshot()
+        self.get_logger().info(f"~/refit: fitting {len(series)} samples")
         found = identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
                                    operators=int(self.values["operators"]) or None,
                                    diagnose_rounds=int(self.values["diagnose_rounds"]),

@@ -143,6 +143,11 @@ class NodeProcesses:
             self.processes.append(process)
         return process
 
+    def forget(self, process: NodeProcess) -> None:
+        """Stop tracking a child that has exited (stop_all no longer waits for it)."""
+        with self._lock:
+            self.processes.remove(process)
+
     def check_running(self) -> None:
         """InputError naming the first child that has exited, with its error line."""
         for process in self.processes:
@@ -209,17 +214,14 @@ class RosClient:
         self.executor = make_executor(executor_kind, self.context)
         self.executor.add_node(self.node)
         self._clients: dict[tuple[object, str], Any] = {}
+        self._running = True
         self._thread = threading.Thread(target=self._spin, name="ros-client", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
-        from sma_stage.nodes._common import spin
+        from sma_stage.nodes._common import spin_while
 
-        try:
-            spin(self.executor, self.context)
-        except Exception:  # noqa: BLE001 -- the context was shut down under a callback while closing
-            if self.context.ok():
-                raise
+        spin_while(self.executor, lambda: self._running, self.context)
 
     def now_s(self) -> float:
         """The node clock [s] (simulated time with use_sim_time; 0 before the first /clock)."""
@@ -257,6 +259,12 @@ class RosClient:
 
         response = self.call(Trigger, name, Trigger.Request(), timeout_s)
         return bool(response.success), str(response.message)
+
+    def trigger_async(self, name: str) -> Any:
+        """Send a std_srvs/Trigger request without waiting for the answer; its rclpy Future."""
+        from std_srvs.srv import Trigger
+
+        return self._client(Trigger, name).call_async(Trigger.Request())
 
     def set_bool(self, name: str, value: bool, timeout_s: float = 10.0) -> tuple[bool, str]:
         """Call a std_srvs/SetBool service: (success, message)."""
@@ -315,11 +323,10 @@ class RosClient:
         return {name: parameter_value_to_python(value) for name, value in zip(names, response.values, strict=True)}
 
     def close(self) -> None:
-        """Stop the executor and shut the context down (first, for the events executor: that ends its spin)."""
-        if self.executor_kind == "events":
-            self.context.try_shutdown()
-        self.executor.shutdown(timeout_sec=2.0)
+        """Stop spinning, then stop the executor, destroy the node and shut the context down."""
+        self._running = False
         self._thread.join(timeout=2.0)
+        self.executor.shutdown(timeout_sec=2.0)
         self.node.destroy_node()
         self.context.try_shutdown()
 

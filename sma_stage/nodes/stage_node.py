@@ -205,7 +205,12 @@ class StageNode(LifecycleNode):
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics), clock=self.steady)
         self.get_logger().info(f"stage ready: backend {self.backend}, {self.rate_hz:g} Hz, "
                                f"max_current {self.max_current:g} A, autostart {self.autostart}")
-        self.start()
+        try:
+            self.start()
+        except BaseException:  # Ctrl-C/SIGTERM during a long start: the output off before the interrupt goes on
+            self.close()
+            self.destroy_node()
+            raise
 
     def start(self) -> None:
         """Go to the autostart state: configure (connect), then activate for the simulator or when asked."""
