@@ -68,7 +68,7 @@ def test_a_bad_hardware_file_is_refused_in_one_line_naming_the_entry(tmp_path, c
 
 
 def test_a_missing_or_malformed_file_is_one_line(tmp_path):
-    with pytest.raises(InputError, match="cannot read the hardware file"):
+    with pytest.raises(InputError, match="hardware file not found"):
         load_bridge_config(tmp_path / "none.yaml")
     (tmp_path / "bad.yaml").write_text("supply: [unclosed\n")
     with pytest.raises(InputError, match="not valid YAML") as excinfo:

@@ -1,7 +1,9 @@
 """The identified model: the GPI with its effects, run forward, saved and loaded (one YAML form, read
 strictly), continued from the state a record left."""
 
+import os
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -134,3 +136,47 @@ def test_a_bad_new_effect_is_refused_in_one_line(kind, parameters, message):
     with pytest.raises(InputError, match=message) as refused:
         Effect(kind, parameters)
     assert "\n" not in str(refused.value)
+
+
+SHIPPED_MODEL_TEXT = (Path(__file__).resolve().parent.parent / "config" / "model_default.yaml").read_text()
+
+# YAML that used to end a node with a traceback (TypeError from sorting mixed keys, OverflowError, RecursionError)
+HOSTILE_MODEL_TEXTS = {
+    "mixed_type_keys": SHIPPED_MODEL_TEXT.replace("parameters:\n", "parameters:\n  1: 0\n", 1),
+    "huge_integer": SHIPPED_MODEL_TEXT.replace("operators:", "operators: 1" + "0" * 400 + "\nxoperators:", 1),
+    "huge_parameter": "kind: gpi\noperators: 5\nparameters: {a1: 1" + "0" * 400 + ", a2: 1, a3: 0, a4: 0, a5: 1, "
+                      "a6: 1, a7: 0, a8: 0, a9: 0.1, a10: 1, a11: 0}\n",
+    "deep_nesting": "a: " + "[" * 50000 + "]" * 50000 + "\n",
+    "alias_bomb": "a: &a [x, x]\nb: &b [*a, *a]\nc: [*b, *b]\n",
+    "too_long": "# " + "x" * (2 << 20) + "\n",
+}
+
+
+@pytest.mark.parametrize("name", list(HOSTILE_MODEL_TEXTS))
+def test_hostile_model_yaml_is_one_line_refusal(name, tmp_path):
+    text = HOSTILE_MODEL_TEXTS[name]
+    with pytest.raises(InputError) as from_text:
+        IdentifiedModel.from_yaml_text(text)
+    path = tmp_path / "model.yaml"
+    path.write_text(text)
+    with pytest.raises(InputError) as from_file:
+        load_model_file(path)
+    for error in (from_text.value, from_file.value):
+        assert "\n" not in str(error) and len(str(error)) < 300, str(error)
+
+
+def test_a_model_file_that_is_not_a_regular_file_is_refused_at_once(tmp_path):
+    fifo = tmp_path / "model.fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match="is not a regular file"):
+        load_model_file(fifo)
+    with pytest.raises(InputError, match="is not a regular file"):
+        load_model_file(tmp_path)
+
+
+def test_gpi_parameters_from_a_mapping_with_mixed_keys_name_them():
+    values = {**STAGE.to_dict(), 1: 0.0, "x": 0.0}
+    with pytest.raises(InputError, match="unknown GPI parameters: 1, x"):
+        GPIParameters.from_dict(values)
+    with pytest.raises(InputError, match="must be finite"):
+        STAGE.replace(a1=10**400)

@@ -452,6 +452,52 @@ def test_compensator_refuses_a_bad_model_and_keeps_the_model(ros):
     probe.command_for(2e-4, reference.step(2e-4))
 
 
+def test_compensator_refuses_hostile_model_yaml_from_every_source_and_keeps_the_model(ros, tmp_path):
+    """Keys of mixed types, a 400-digit integer, 50,000-deep nesting, an alias bomb, a FIFO as model_file: each
+    used to end the node ([FATAL] in the services callback) or freeze it; now each is refused in one line."""
+    from test_identified_model import HOSTILE_MODEL_TEXTS
+
+    path = tmp_path / "model.yaml"
+    IdentifiedModel(DEFAULT_PARAMS, OPERATORS).save(path)
+    compensator = compensator_node(ros, rate_hz=2.0, model_file=str(path))
+    probe = CompensatorProbe(ros, compensator)
+    for name, text in HOSTILE_MODEL_TEXTS.items():
+        result = compensator.set_parameters_atomically([Parameter("model", value=text)])
+        assert not result.successful and "\n" not in result.reason, (name, result.reason)
+        path.write_text(text)
+        answer = ros.call(probe.node, Trigger, "compensator/reload")
+        assert not answer.success and str(path) in answer.message and "\n" not in answer.message, (name, answer)
+        other = tmp_path / f"{name}.yaml"
+        other.write_text(text)
+        result = compensator.set_parameters([Parameter("model_file", value=str(other))])[0]
+        assert not result.successful and "\n" not in result.reason, (name, result.reason)
+    fifo = tmp_path / "model.fifo"
+    os.mkfifo(fifo)
+    started = time.monotonic()
+    result = compensator.set_parameters([Parameter("model_file", value=str(fifo))])[0]
+    assert not result.successful and "is not a regular file" in result.reason
+    assert time.monotonic() - started < 1.0
+    assert compensator.inverse.params == DEFAULT_PARAMS and compensator.model_source == str(path)
+    reference = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, "exact", input_range=(-5.0, 5.0))
+    probe.command_for(2e-4, reference.step(2e-4))
+
+
+@pytest.mark.parametrize("name", ["mixed_type_keys", "huge_integer", "deep_nesting"])
+def test_stage_executable_refuses_a_hostile_hardware_file_in_one_line(tmp_path, name):
+    from test_identified_model import HOSTILE_MODEL_TEXTS
+
+    hardware = tmp_path / "hardware.yaml"
+    hardware.write_text((REPO / "config" / "hardware_example.yaml").read_text().replace("timeout_ms: 200", {
+        "mixed_type_keys": "timeout_ms: 200\n1: 0", "huge_integer": "timeout_ms: 2" + "0" * 400,
+        "deep_nesting": HOSTILE_MODEL_TEXTS["deep_nesting"].replace("a: ", "timeout_ms: 200\nextra: ")}[name]))
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    done = subprocess.run([sys.executable, "-m", "sma_stage.nodes.stage_node", "--ros-args", "-p", "backend:=visa",
+                           "-p", f"hardware_file:={hardware}"], capture_output=True, text=True, timeout=60, env=env,
+                          cwd=REPO)
+    lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+    assert done.returncode == 2 and len(lines) == 1 and "cannot start: hardware file" in lines[0], lines
+
+
 def test_compensator_takes_a_whole_model_through_its_parameter_service(ros):
     compensator = compensator_node(ros, rate_hz=2.0)
     probe = CompensatorProbe(ros, compensator)

@@ -21,9 +21,17 @@ import yaml
 from sma_stage.errors import InputError
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import plain_values
+from sma_stage.io.safe_yaml import parse_yaml, read_text_file
 from sma_stage.model.effects import FREE_VALUES, START_KINDS, Effect, EffectState, rate_forward
 from sma_stage.model.forward import as_signal, forward_with_states
-from sma_stage.model.parameters import DEFAULT_OPERATORS, MODEL_KIND, GPIParameters, check_operators
+from sma_stage.model.parameters import (
+    DEFAULT_OPERATORS,
+    MODEL_KIND,
+    GPIParameters,
+    check_operators,
+    float_or_inf,
+    shown_number,
+)
 
 SCHEMA_VERSION = 1
 TOP_KEYS = ("schema_version", "kind", "output_unit", "operators", "parameters", "effects", "state", "metadata")
@@ -233,27 +241,16 @@ class IdentifiedModel:
     @classmethod
     def from_yaml_text(cls, text: str) -> IdentifiedModel:
         """The model from YAML text (a model file's content, or the compensator's `model` parameter)."""
-        try:
-            document = yaml.safe_load(text)
-        except yaml.YAMLError as error:
-            first_line = str(error).splitlines()[0] if str(error) else "invalid YAML"
-            raise InputError(f"not valid YAML: {first_line}") from None
-        return cls.from_dict(document)
+        return cls.from_dict(parse_yaml(text))
 
 
 def load_model_file(path: str | os.PathLike) -> IdentifiedModel:
-    """Read and check a model file; any problem is one InputError line naming the file."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"model file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(f"cannot read model file {path}: {error}") from None
+    """Read and check a model file (a regular file of YAML); any problem is one InputError line naming it."""
+    text = read_text_file(path, "model file")
     try:
         return IdentifiedModel.from_yaml_text(text)
     except InputError as error:
-        raise InputError(f"model file {path}: {error}") from None
+        raise InputError(f"model file {Path(path)}: {error}") from None
 
 
 def _record(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -305,6 +302,6 @@ def _state(entry: object) -> ModelState:
 
 
 def _number(value: object, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(f"{what} must hold finite numbers, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float_or_inf(value)):
+        raise InputError(f"{what} must hold finite numbers, got {shown_number(value)}")
     return float(value)

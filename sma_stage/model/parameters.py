@@ -39,8 +39,8 @@ class GPIParameters:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
                 raise InputError(f"GPI parameter {name} must be a number, got {value!r}")
-            if not math.isfinite(float(value)):
-                raise InputError(f"GPI parameter {name} must be finite, got {value!r}")
+            if not math.isfinite(float_or_inf(value)):
+                raise InputError(f"GPI parameter {name} must be finite, got {shown_number(value)}")
             object.__setattr__(self, name, float(value))
         if self.a9 <= 0.0:
             raise InputError(f"GPI parameter a9 (threshold step) must be > 0, got {self.a9!r}")
@@ -69,7 +69,7 @@ class GPIParameters:
         if not isinstance(values, dict):
             raise InputError(f"GPI parameters must be a mapping of a1..a11, got {type(values).__name__}")
         missing = [name for name in PARAMETER_NAMES if name not in values]
-        unknown = sorted(set(values) - set(PARAMETER_NAMES))
+        unknown = [key for key in values if key not in PARAMETER_NAMES]
         if missing:
             raise InputError(f"GPI parameters missing: {', '.join(missing)}")
         if unknown:
@@ -124,6 +124,20 @@ class GPIParameters:
         from sma_stage.model.identified import load_model_file
 
         return load_model_file(path).parameters
+
+
+def float_or_inf(value: float | int) -> float:
+    """float(value), or +-inf for an integer too large for a float (float() raises OverflowError)."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf if value > 0 else -math.inf
+
+
+def shown_number(value: object, limit: int = 40) -> str:
+    """repr(value) for a message, cut to `limit` characters (a 400-digit integer stays one short line)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
 
 
 def check_operators(operators: int) -> int:

@@ -115,6 +115,11 @@ def model_from(values: dict[str, object], changed: str | None = None) -> tuple[I
     return load_model_file(path), path
 
 
+def unexpected(error: Exception) -> str:
+    """One line for an error no check foresaw while taking a new model (the model in force stays)."""
+    return f"model refused after an unexpected {type(error).__name__}: {' '.join(str(error).split())[:200]}"
+
+
 class CompensatorNode(Node):
     """Setpoint [m] in, current command [A] out, through the identified model's inverse (and a PI loop)."""
 
@@ -212,6 +217,8 @@ class CompensatorNode(Node):
                 settings = self.settings(self.model, candidate)
         except InputError as error:
             return SetParametersResult(successful=False, reason=str(error))
+        except Exception as error:  # noqa: BLE001 -- a bug met by a new model is a refusal, not a dead node
+            return SetParametersResult(successful=False, reason=unexpected(error))
         with self._lock:
             if candidate["enabled"] != self.values["enabled"]:
                 self.setpoint_m = None
@@ -235,6 +242,8 @@ class CompensatorNode(Node):
                 core = self.build_core(load_model_file(path), self.values)
             except InputError as error:
                 response.message = str(error)
+            except Exception as error:  # noqa: BLE001 -- as in on_set_parameters
+                response.message = unexpected(error)
             else:
                 with self._lock:
                     self.core, self.model_source = core, path

@@ -18,9 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from string import Formatter
 
-import yaml
-
 from sma_stage.errors import InputError
+from sma_stage.io.safe_yaml import load_yaml_file
 from sma_stage.plant.hardware import (
     STAGE_POSITION,
     STAGE_VELOCITY,
@@ -118,12 +117,7 @@ class BridgeConfig:
 def load_bridge_config(path: str | Path) -> BridgeConfig:
     """Read and check a hardware YAML file; InputError naming the file and the first bad entry."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as error:
-        raise InputError(f"{path}: cannot read the hardware file: {error.strerror or error}") from None
-    except yaml.YAMLError as error:
-        raise InputError(f"{path}: not valid YAML: {' '.join(str(error).split())}") from None
+    data = load_yaml_file(path, "hardware file")
     try:
         return bridge_config(data, str(path))
     except InputError as error:
