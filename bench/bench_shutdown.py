@@ -259,18 +259,16 @@ def main() -> int:
     cells = [Cell(*name.split(":"), signal_name) for name in args.cells.split(",")
              for signal_name in args.signals.split(",")]
     started = time.monotonic()
+    print(f"{args.trials} stops per row, {args.load} CPU-bound processes beside, limit {args.limit:g} s; logs of "
+          f"failures in {workdir}\n")
+    print("| node | condition | signal | stops | in the condition | median [s] | p99 [s] | max [s] | over the limit "
+          "| failed |")
+    print("|---|---|---|---|---|---|---|---|---|---|", flush=True)
     with cpu_load(args.load):
         for number, cell in enumerate(cells):
             run_cell(cell, args.trials, args.limit, args.domain + number, workdir, args.py_spy)
-            print(f"{cell.node} {cell.condition} SIG{cell.signal_name}: {len(cell.seconds)} stops, "
-                  f"{len(cell.failures)} failed", file=sys.stderr, flush=True)
-    print(f"\n{args.trials} stops per row, {args.load} CPU-bound processes beside, limit {args.limit:g} s, "
-          f"{(time.monotonic() - started) / 60:.1f} min; logs of failures in {workdir}\n")
-    print("| node | condition | signal | stops | in the condition | median [s] | p99 [s] | max [s] | over the limit "
-          "| failed |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for cell in cells:
-        print(cell.row())
+            print(cell.row(), flush=True)
+    print(f"\n{(time.monotonic() - started) / 60:.1f} min")
     failures = [f"{cell.node} {cell.condition} SIG{cell.signal_name}: {reason}" for cell in cells
                 for reason in cell.failures]
     for line in failures[:40]:

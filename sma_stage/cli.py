@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
@@ -136,9 +138,32 @@ def run_simulate(args: argparse.Namespace) -> dict:
     return report
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (kill, timeout, systemd), raised where the command is, so that it ends as Ctrl-C does: its
+    worker processes ended, its output folder as it was."""
+
+
+def _raise_terminated(number: int, frame: object) -> None:
+    raise Terminated
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point: run one command; InputError and OSError become one line and exit status 2."""
+    """Entry point: run one command; InputError, OSError and MemoryError become one line and exit status 2;
+    Ctrl-C and SIGTERM one line and 130 or 143."""
     args = build_parser().parse_args(argv)
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if _in_main_thread() else None
+    try:
+        return _run(args)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         result = args.handler(args)
     except InputError as error:
@@ -147,6 +172,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as error:
         print(f"gpi_tool: error: {error.strerror or error}: {error.filename or ''}".rstrip(": "), file=sys.stderr)
         return EXIT_BAD_INPUT
+    except MemoryError:
+        print("gpi_tool: error: out of memory (see docs/reliability.md for the memory a record needs)",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Terminated:
+        print("gpi_tool: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("gpi_tool: interrupted", file=sys.stderr)
         return 130

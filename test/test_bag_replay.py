@@ -60,7 +60,8 @@ class Player:
         rclpy.init(context=self.context, domain_id=domain_id)
         settings = dict(use_sim_time=True, operators=OPERATORS, holdout_fraction=HOLDOUT, push_timeout=0.0,
                         compensator_name="no_compensator_in_this_test", diagnose_rounds=0,
-                        input_topic="current_cmd")  # the bags hold the commands the node recorded then
+                        input_topic="current_cmd",  # the bags hold the commands the node recorded then
+                        max_held_out_rms_pct=100.0)  # 5 s bags: the fitted head does not describe the tail
         settings.update(overrides)
         self.identification = IdentificationNode(
             context=self.context, parameter_overrides=[Parameter(k, value=v) for k, v in settings.items()])

@@ -229,3 +229,109 @@ def test_a_run_replaces_the_whole_set_of_an_earlier_run(data, tmp_path, capsys):
     fitted = set(run_files(out))
     assert fitted == {"model.yaml", "report.json", "report.md", "fit.png", "notes.txt"}
     assert diagnosed - fitted, "the diagnose run's own files are gone"
+
+
+def test_a_failed_run_creates_no_folder_and_names_the_file_it_could_not_write(data, tmp_path, capsys, monkeypatch):
+    """A failed run used to leave the missing parents of --out behind, and a full disk's error named the hidden
+    staging path."""
+    import errno
+
+    from sma_stage.model.identified import IdentifiedModel
+
+    def disk_full(self, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(IdentifiedModel, "save", disk_full)
+    out = tmp_path / "deep" / "a" / "b"
+    assert main(["fit", str(data[0]), "--operators", "5", "--out", str(out)]) == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error == f"gpi_tool: error: No space left on device: {out / 'model.yaml'}", error
+    assert list(tmp_path.iterdir()) == [], "no folder created, no staging folder left"
+
+
+def test_a_dangling_symlink_as_out_is_refused_before_the_work(data, tmp_path, capsys, monkeypatch):
+    import sma_stage.commands.identify as identify_command
+
+    (tmp_path / "out").symlink_to(tmp_path / "nowhere")
+    monkeypatch.setattr(identify_command, "identify_recording", lambda *a, **k: pytest.fail("the fit ran"))
+    assert main(["fit", str(data[0]), "--out", str(tmp_path / "out")]) == 2
+    assert "symbolic link to nothing" in capsys.readouterr().err
+
+
+def test_a_staging_folder_left_by_a_killed_run_is_removed_by_the_next(data, tmp_path, capsys):
+    import subprocess
+    import sys
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    left = tmp_path / f".out.{int(dead.stdout)}.abc123.staging"
+    left.mkdir()
+    (left / "model.yaml").write_text("half")
+    assert main(["fit", str(data[0]), "--operators", "5", "--out", str(tmp_path / "out")]) == 0
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["out"]
+
+
+def test_holdout_leaving_too_few_samples_is_refused_by_its_value(data, capsys):
+    assert main(["fit", str(data[0]), "--holdout", "1e-300"]) == 2
+    assert "holdout fraction 1e-300 leaves 0 of 600 samples" in capsys.readouterr().err
+
+
+def test_sigterm_ends_a_diagnosis_and_its_workers_as_ctrl_c_does(data, tmp_path):
+    """SIGTERM used to end the main process at once and leave the forkserver, the resource tracker and both
+    workers running, and a staging folder beside --out."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "out"
+    process = subprocess.Popen([sys.executable, "-m", "sma_stage.cli", "diagnose", str(data[0]), "--validate",
+                                str(data[1]), "--workers", "2", "--out", str(out)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline and len(descendants(process.pid)) < 3:
+        time.sleep(0.1)
+    assert len(descendants(process.pid)) >= 3, "the forkserver and its workers started"
+    process.send_signal(signal.SIGTERM)
+    _, error = process.communicate(timeout=30)
+    assert process.returncode == 143 and error.strip().endswith("gpi_tool: terminated"), error
+    time.sleep(1.0)
+    survivors = [pid for pid in session_members(process.pid) if pid != process.pid]
+    for pid in survivors:
+        os.kill(pid, signal.SIGKILL)
+    assert not survivors, "no process of the run left"
+    assert sorted(path.name for path in tmp_path.iterdir()) == [], "no folder and no staging folder left"
+
+
+def descendants(pid: int) -> list[int]:
+    """The processes below pid (Linux /proc)."""
+    from pathlib import Path
+
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, pending = [], [pid]
+    while pending:
+        for child in children.get(pending.pop(), []):
+            found.append(child)
+            pending.append(child)
+    return found
+
+
+def session_members(session: int) -> list[int]:
+    """The live processes of a session (those re-parented to PID 1 included)."""
+    from pathlib import Path
+
+    members = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == session and fields[0] != "Z":
+            members.append(int(stat.parent.name))
+    return members

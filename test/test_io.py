@@ -559,3 +559,39 @@ def test_a_recording_killed_before_it_finished_is_found_beside_its_bag(tmp_path)
     assert left.name.startswith(".session.") and left.name.endswith(".partial")
     assert not (tmp_path / "session").exists()
     assert unfinished_bags(tmp_path / "other") == []
+
+
+def test_a_wide_header_is_answered_in_linear_time(tmp_path):
+    """header.count(name) for each name made a 200,000-column header take minutes."""
+    names = [f"c{k}" for k in range(200_000)]
+    path = tmp_path / "wide.csv"
+    path.write_text(",".join(["t", "input", "output", *names]) + "\n" + ",".join(["0"] * 200_003) + "\n")
+    started = time.monotonic()
+    with pytest.raises(InputError, match="only 1 samples"):
+        read_csv(path)
+    path.write_text(",".join([*names, "c7"]) + "\n")
+    with pytest.raises(InputError, match="duplicate column name"):
+        read_csv(path)
+    assert time.monotonic() - started < 10.0
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder", "device"])
+def test_a_data_path_that_is_not_a_regular_file_is_refused_at_once(tmp_path, kind):
+    path = {"folder": tmp_path, "device": Path("/dev/zero"), "fifo": tmp_path / "data.fifo"}[kind]
+    if kind == "fifo":
+        os.mkfifo(path)
+    with pytest.raises(InputError, match="not a regular file"):
+        read_csv(path)
+
+
+def test_the_fast_reader_and_the_strict_reader_agree(tmp_path):
+    """Lines numpy reads as the strict reader would go through numpy; the others (single quotes) through the
+    strict reader: the same values either way."""
+    t, u, y = excitation(n=50)
+    plain = tmp_path / "plain.csv"
+    plain.write_text("t,input,output # header\n" + "".join(
+        f'{a!r}, "{b!r}" ,{c!r}\n\n# comment\n' for a, b, c in zip(t.tolist(), u.tolist(), y.tolist(), strict=True)))
+    quoted = tmp_path / "quoted.csv"
+    quoted.write_text(plain.read_text().replace('"', "'"))
+    first, second = read_csv(plain), read_csv(quoted)
+    assert np.array_equal(first.input, u) and np.array_equal(second.input, u) and np.array_equal(first.t, second.t)

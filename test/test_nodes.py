@@ -807,8 +807,8 @@ def test_identification_refit_survives_a_candidate_that_cannot_be_fitted(ros, tm
     """The end-to-end recording on which the drift candidate's creep fit failed and took the refit down."""
     model_file = tmp_path / "model.yaml"
     identification = identification_node(ros, operators=5, min_samples=60, diagnose_rounds=1, push_timeout=5.0,
-                                         model_file=str(model_file))
-    compensator = compensator_node(ros, rate_hz=2.0)
+                                         model_file=str(model_file), max_held_out_rms_pct=100.0)
+    compensator = compensator_node(ros, rate_hz=2.0)  # the recording is short: its held-out RMS is 33 %
     monkeypatch.setattr(identification, "snapshot", lambda: read_csv(DRIFT_UNFITTABLE, min_samples=60))
     answer = refit_answer(ros, ros.probe())
     assert answer.success, answer.message
@@ -821,6 +821,20 @@ def test_identification_refit_survives_a_candidate_that_cannot_be_fitted(ros, tm
     assert cli_main(["diagnose", str(DRIFT_UNFITTABLE), "--holdout", "0.25", "--operators", "5", "--rounds", "1",
                      "--out", str(out), "--json"]) == 0
     assert load_model_file(out / "model.yaml") == load_model_file(model_file), "gpi_tool and ~/refit: one model"
+
+
+def test_identification_refuses_a_refit_that_misses_its_held_out_tail(ros, tmp_path, monkeypatch):
+    """A recording cut short (the stage stopped early in the excitation) used to be fitted and pushed with a
+    held-out error of 18-33 % and no warning."""
+    model_file = tmp_path / "model.yaml"
+    identification = identification_node(ros, operators=5, min_samples=60, push_timeout=5.0,
+                                         model_file=str(model_file))
+    compensator = compensator_node(ros, rate_hz=2.0)
+    before = compensator.model
+    monkeypatch.setattr(identification, "snapshot", lambda: read_csv(DRIFT_UNFITTABLE, min_samples=60))
+    answer = refit_answer(ros, ros.probe())
+    assert not answer.success and "max_held_out_rms_pct 10 %" in answer.message, answer.message
+    assert not model_file.exists() and compensator.model == before
 
 
 def test_identification_refit_keeps_the_plain_fit_when_the_diagnosis_fails(ros, tmp_path, monkeypatch):
@@ -917,7 +931,8 @@ def test_identification_keeps_serving_during_a_refit(ros, monkeypatch):
         return real_fit(*args, **kwargs)
 
     monkeypatch.setattr(module, "identify_recording", held_fit)
-    identification = identification_node(ros, min_samples=50, push_timeout=0.1, operators=5)
+    identification = identification_node(ros, min_samples=50, push_timeout=0.1, operators=5,
+                                         max_held_out_rms_pct=1000.0)  # a fake stage: the fit is not the point
     fake = FakeStage(ros, identification)
     fake.publish(4.0 * np.sin(np.linspace(0.0, 4.0 * np.pi, 100)))
     wait_until(lambda: len(identification.outputs) == 100, 5.0, "100 recorded positions")
@@ -1037,7 +1052,8 @@ def test_identification_refuses_to_excite_on_sim_time_before_any_clock(ros):
 def test_identification_excites_and_refits_on_sim_time(ros):
     stage_node(ros, rate_hz=100.0, time_scale=TIME_SCALE, use_sim_time=True, command_timeout=5.0)
     identification = identification_node(ros, use_sim_time=True, excite_period=250.0, excite_duration=300.0,
-                                         min_samples=60, push_timeout=0.1, operators=5)
+                                         min_samples=60, push_timeout=0.1, operators=5,
+                                         max_held_out_rms_pct=100.0)  # 300 s: the tail holds what the head lacks
     probe = ros.probe()
     wait_until(lambda: identification.count_publishers("joint_states") >= 1, 5.0, "discovery")
     wait_until(lambda: identification.now_ns() > 0, 5.0, "/clock")

@@ -756,32 +756,41 @@ def _standard_errors(u: np.ndarray, params: GPIParameters, operators: int, regre
                      cost: float) -> tuple[dict[str, float], np.ndarray]:
     """sigma^2 (J^T J)^-1, sigma^2 = SSR / (N - p), in the normalised form: free a1..a9, a11 and c;
     a10 = 1 / sum exp(-a11 r_i) follows from them (delta method). Infinite where the data cannot tell
-    a parameter apart (e.g. a constant regressor column against a common shift of a4 and a8)."""
-    _, jac = model_jacobian(u, params, operators)
+    a parameter apart (e.g. a constant regressor column against a common shift of a4 and a8).
+    The design's columns are built in place in one (11 + regressors) x N array (its only copy of N rows)."""
+    v = as_signal(u, "input")
+    m = regressors.shape[1]
+    rows = np.empty((1 + SENSITIVITY_COLUMNS + m, v.size))
+    _sensitivities(v, params.as_array(), check_operators(operators), initial_states(params, operators, None),
+                   out=rows[:1 + SENSITIVITY_COLUMNS])
     indices = np.arange(operators)
     weights = np.exp(-params.a11 * params.a9 * indices)
     total = weights.sum()
     a10_gradient = np.zeros(10)  # d a10 / d(a1..a9, a11)
     a10_gradient[8] = params.a11 * (indices @ weights) / total**2
     a10_gradient[9] = params.a9 * (indices @ weights) / total**2
-    free_jac = np.delete(jac, 9, axis=1) + np.outer(jac[:, 9], a10_gradient)
-    design = np.column_stack([free_jac, regressors])
-    columns = design.shape[1]
+    shape = rows[0]  # dy/da10 = s, carried into each free column through a10's gradient
+    for column in range(SENSITIVITY_COLUMNS):
+        rows[1 + column] *= params.a10
+        rows[1 + column] += a10_gradient[column] * shape
+    rows[1 + SENSITIVITY_COLUMNS:] = regressors.T
+    columns = SENSITIVITY_COLUMNS + m
     functions = np.vstack([np.eye(columns), np.r_[a10_gradient, np.zeros(columns - 10)]])
-    variances = _variances(design, cost / max(u.size - columns, 1), functions)
+    variances = _variances(rows[1:], cost / max(u.size - columns, 1), functions)
     free_names = [name for name in PARAMETER_NAMES if name != "a10"]
     errors = {name: float(np.sqrt(variances[k])) for k, name in enumerate(free_names)}
     errors["a10"] = float(np.sqrt(variances[-1]))
     return {name: errors[name] for name in PARAMETER_NAMES}, np.sqrt(variances[10:-1])
 
 
-def _variances(design: np.ndarray, sigma2: float, functions: np.ndarray) -> np.ndarray:
+def _variances(columns: np.ndarray, sigma2: float, functions: np.ndarray) -> np.ndarray:
     """sigma^2 g^T (J^T J)^+ g for each row g of functions (in J's column units), from J's R factor with
-    columns scaled to unit norm; infinite for a g that changes along a direction J does not see."""
-    norms = np.linalg.norm(design, axis=0)
+    columns scaled to unit norm; infinite for a g that changes along a direction J does not see.
+    columns: J transposed (one row per column of J, N long), overwritten."""
+    norms = np.sqrt(np.einsum("ij,ij->i", columns, columns))
     norms[norms == 0.0] = 1.0
-    rows = np.ascontiguousarray((design / norms).T)
-    r = householder_r(rows, np.arange(rows.shape[0], dtype=np.int64))
+    columns /= norms[:, None]
+    r = householder_r(columns, np.arange(columns.shape[0], dtype=np.int64))
     _, singular, vt = np.linalg.svd(r)
     seen = singular > NULL_TOLERANCE * singular[0]
     scaled = functions / norms

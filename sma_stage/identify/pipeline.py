@@ -13,11 +13,13 @@ import numpy as np
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import Diagnosis, diagnose, one_blas_thread
-from sma_stage.identify.fit import FitResult, fit_gpi, predict
+from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
+
+MIN_HELD_OUT = 10  # fewest held-out samples a validation is scored on
 
 Progress = Callable[[str], None] | None
 
@@ -85,7 +87,12 @@ def _split(record: Series, validation: Series | None, holdout_fraction: float | 
     """(identification data, validation data, first scored validation sample, where validation comes from)."""
     if holdout_fraction is not None:
         if not 0.0 < holdout_fraction < 1.0:
-            raise InputError(f"holdout fraction must be between 0 and 1, got {holdout_fraction}")
+            raise InputError(f"holdout fraction must be between 0 and 1, got {holdout_fraction:g}")
+        held_out = len(record) - round((1.0 - holdout_fraction) * len(record))
+        if held_out < MIN_HELD_OUT or len(record) - held_out < MIN_SAMPLES:
+            raise InputError(f"holdout fraction {holdout_fraction:g} leaves {held_out} of {len(record)} samples for "
+                             f"validation and {len(record) - held_out} for the fit (at least {MIN_HELD_OUT} and "
+                             f"{MIN_SAMPLES} are needed)")
         ident, tail = record.split(1.0 - holdout_fraction)
         source = (f"held-out tail of the recording: last {100 * holdout_fraction:g} % ({len(tail)} samples, "
                   f"t = {tail.t[0]:.3f} to {tail.t[-1]:.3f} s), model run over the whole recording")

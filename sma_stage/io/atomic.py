@@ -29,7 +29,7 @@ def _mode_for(target: Path) -> int:
         return 0o666 & ~_umask()
 
 
-def _alive(pid: int) -> bool:
+def alive(pid: int) -> bool:
     """True when a process of this pid runs on this machine (or may: one of another user)."""
     try:
         os.kill(pid, 0)
@@ -50,7 +50,7 @@ def sweep_stale_temporaries(target: Path) -> list[Path]:
     for candidate in target.parent.glob(f".{target.name}.*.tmp"):
         pid = candidate.name[len(target.name) + 2:].split(".", 1)[0]
         try:
-            stale = not _alive(int(pid)) and time.time() - candidate.stat().st_mtime >= STALE_TEMPORARY_S
+            stale = not alive(int(pid)) and time.time() - candidate.stat().st_mtime >= STALE_TEMPORARY_S
         except (ValueError, OSError):
             continue
         if stale:

@@ -78,6 +78,9 @@ IDENTIFICATION_PARAMS = [
     Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
           read_only=True),
+    Param("max_held_out_rms_pct", 10.0, "a refit whose model misses the held-out tail by more than this RMS [% of the "
+          "recording's span] is refused: nothing written or pushed (a recording cut short, a stage that stopped)",
+          0.1, 1000.0),
     Param("push_timeout", 2.0, "wait for the compensator's parameter service [s]", 0.0, 60.0),
     Param("pause_compensator", True, "set the compensator's enabled false while ~/excite drives the stage, so "
           "one node at a time owns current_cmd"),
@@ -501,6 +504,7 @@ class IdentificationNode(Node):
                                    source="identification node ~/refit",
                                    workers=int(self.values["diagnose_workers"]))
         report = found.report
+        self.check_held_out(report, series)
         report["model_file"] = self.write_model(found.model)
         report["report_file"] = report_path(report["model_file"])
         report["compensator"] = self.push(found.model)
@@ -509,6 +513,16 @@ class IdentificationNode(Node):
         if report["report_file"] is not None:
             self.write_report(report)
         return report
+
+    def check_held_out(self, report: dict, series: Series) -> None:
+        """InputError when the model to deploy misses the held-out tail by more than max_held_out_rms_pct."""
+        diagnosis = report.get("diagnosis")
+        held_out = (diagnosis["after"]["validation"] if diagnosis is not None else report["validation"]) or {}
+        rms_pct, limit = held_out.get("rms_pct"), float(self.values["max_held_out_rms_pct"])
+        if rms_pct is not None and rms_pct > limit:
+            raise InputError(f"the model misses the held-out tail by {rms_pct:.3g} % RMS, more than "
+                             f"max_held_out_rms_pct {limit:g} % (recording: {len(series)} samples over "
+                             f"{series.t[-1] - series.t[0]:.3g} s): the model in force stays")
 
     def write_report(self, report: dict) -> None:
         """Write the JSON report beside the model file, atomically; a failure is a warning in the report."""
