@@ -1111,3 +1111,65 @@ def test_compensator_callbacks_survive_any_message_and_refused_parameters_change
     run()
     assert len(tried) >= 200 and sum(tried) >= 1000, (len(tried), sum(tried))
     print(f"compensator callbacks: {len(tried)} sequences, {sum(tried)} messages and parameter changes")
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+@pytest.mark.parametrize("how", ["write_error", "low_space"])
+def test_a_failing_disk_ends_recording_in_one_line_and_keeps_the_bag(tmp_path, monkeypatch, storage, how):
+    """A full disk used to kill the bag writer thread with a traceback, lose the bag (sqlite3 held everything in one
+    transaction) and let messages queue without bound for the dead writer."""
+    import errno
+
+    import sma_stage.nodes.identification_node as module
+    from sma_stage.io.rosbag_io import BagRecorder
+
+    failures: list[str] = []
+    if how == "write_error":
+        real_write = BagRecorder.write_output
+
+        def write_until_full(self, *args):
+            if self.message_count >= 60:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real_write(self, *args)
+
+        monkeypatch.setattr(BagRecorder, "write_output", write_until_full)
+    else:
+        looked: list[int] = []
+
+        def filling_disk(path):
+            looked.append(1)
+            return shutil_usage(free=(1 << 30) if len(looked) < 60 else (10 << 20))
+
+        monkeypatch.setattr(module, "BAG_CHECKPOINT_S", 0.0)
+        monkeypatch.setattr(module.shutil, "disk_usage", filling_disk)
+    bag = tmp_path / "bag"
+    writer = module.BagThread(bag, storage, on_failure=failures.append)
+    for k in range(200):
+        writer.write_input(10**9 + k * 10**7, np.sin(k / 10.0))
+        writer.write_output(10**9 + k * 10**7 + 1, 1e-4 * np.sin(k / 10.0), 0.0, 10**9 + k * 10**7 + 1)
+    assert writer.close() == bag
+    assert len(failures) == 1 and failures[0].startswith("recording stopped: ") and "\n" not in failures[0]
+    assert writer.failure == failures[0] and f"the bag {bag} holds" in failures[0], failures[0]
+    kept = read_bag(bag, min_samples=1, input_topic="/current_applied")
+    assert 1 <= len(kept) <= 61, "the messages written before the failure, readable"
+    started = time.monotonic()
+    for _ in range(100_000):
+        writer.write_input(0, 0.0)
+    assert time.monotonic() - started < 2.0 and writer._queue.qsize() == 0, "nothing queued once failed"
+
+
+def shutil_usage(free: int):
+    import shutil
+
+    return shutil._ntuple_diskusage(1 << 40, (1 << 40) - free, free)
+
+
+def test_identification_diagnostics_report_a_failed_recording(ros, tmp_path):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    identification = identification_node(ros, record_bag=str(tmp_path / "bag"))
+    assert identification.diagnostic_status().level == DiagnosticStatus.OK
+    identification.recorder.failure = "recording stopped: No space left on device; ..."
+    status = identification.diagnostic_status()
+    assert status.level == DiagnosticStatus.ERROR and status.message.startswith("recording stopped")
+    identification.recorder.failure = None

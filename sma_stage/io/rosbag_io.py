@@ -263,6 +263,18 @@ def _move_into_place(staged: Path, target: Path, overwrite: bool) -> None:
     shutil.rmtree(trash, ignore_errors=True)
 
 
+RESERVE_NAME = ".reserve"
+RESERVE_BYTES = 4 << 20  # given up when the disk is full, so that the bag can still be finished
+
+
+def _write_reserve(path: Path) -> None:
+    """A file of RESERVE_BYTES beside the bag (OSError when the disk cannot hold even that)."""
+    with open(path, "wb") as file:
+        file.write(bytes(RESERVE_BYTES))
+        file.flush()
+        os.fsync(file.fileno())
+
+
 def _topic_name(name: str) -> str:
     key = _topic_key(name)
     if not key:
@@ -300,7 +312,9 @@ class BagRecorder:
         self._staging = Path(tempfile.mkdtemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".partial"))
         self._lock = threading.Lock()
         self.message_count = 0
+        self._reserve = self._staging / RESERVE_NAME
         try:
+            _write_reserve(self._reserve)
             self._writer = Writer(self._staging / self.path.name, version=JAZZY_BAG_VERSION, storage_plugin=plugin)
             self._writer.open()
             store = _typestore()
@@ -353,16 +367,33 @@ class BagRecorder:
         )
         return self._write(self._output, stamp_ns if receive_ns is None else receive_ns, message)
 
+    def checkpoint(self) -> None:
+        """Make what was written so far durable: the sqlite3 storage commits its transaction (else a failed
+        write later, a full disk, rolls all of it back); the mcap storage writes its chunks as they fill."""
+        with self._lock:
+            connection = getattr(getattr(self._writer, "storage", None), "conn", None)  # rosbags 0.11's sqlite3
+            if self._open and connection is not None:
+                connection.commit()
+
     def close(self) -> Path:
-        """Finish the bag and rename it into place; returns its path."""
+        """Finish the bag and rename it into place; returns its path. After a write failed for want of space,
+        the reserve kept beside the bag is given up first, so that the storage's last records and
+        metadata.yaml fit: the bag is then readable up to the failure. An OSError leaves the staging folder,
+        with what it holds, in place."""
         with self._lock:
             if not self._open:
                 return self.path
             self._open = False
+            self._reserve.unlink(missing_ok=True)
             self._writer.close()
         _move_into_place(self._staging / self.path.name, self.path, self._overwrite)
         shutil.rmtree(self._staging, ignore_errors=True)
         return self.path
+
+    @property
+    def staging(self) -> Path:
+        """The hidden folder the bag is written in until close()."""
+        return self._staging
 
     def abort(self) -> None:
         """Stop and discard everything recorded."""

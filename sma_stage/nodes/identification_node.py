@@ -24,12 +24,17 @@ output time; output times are the JointState header stamps unless they run on an
 
 from __future__ import annotations
 
+import errno
 import queue
+import shutil
 import threading
+import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParametersAtomically
 from rclpy.node import Node
@@ -64,6 +69,7 @@ from sma_stage.nodes._common import (
 from sma_stage.signals import paper_identification_signal
 
 STORAGES = ("sqlite3", "mcap")
+DIAGNOSTICS_PERIOD_S = 1.0
 
 IDENTIFICATION_PARAMS = [
     Param("max_samples", 200000, "ring buffer length per topic [messages]; the oldest are dropped", 100, 10**8,
@@ -154,17 +160,28 @@ def refit_summary(report: dict) -> str:
     return "; ".join(parts)
 
 
+BAG_QUEUE_LIMIT = 100_000  # messages waiting for the bag writer (25 s of both topics at 2 kHz); more are dropped
+BAG_CHECKPOINT_S = 1.0  # the bag is made durable and the free space looked at this often [s]
+MIN_FREE_BYTES = 64 << 20  # below this much free space the recording ends, the bag finished while it can be
+
+
 class BagThread:
     """A BagRecorder driven from one thread of its own (the sqlite3 storage must stay in the thread that
-    opened it, while the executor calls back from several)."""
+    opened it, while the executor calls back from several), behind a bounded queue. A failure of the recorder
+    (a full disk, a write error) ends the recording: the bag is finished as far as it can be, `failure` says
+    what happened and where the data are, on_failure is told once, and further messages are dropped."""
 
-    def __init__(self, path: Path, storage: str, overwrite: bool = False, input_topic: str = "current_applied") -> None:
+    def __init__(self, path: Path, storage: str, overwrite: bool = False, input_topic: str = "current_applied",
+                 on_failure: Callable[[str], None] | None = None) -> None:
         self.path = path
         if (path.exists() or path.is_symlink()) and not overwrite:
             raise InputError(f"record_bag {path} exists already: choose another path or set bag_overwrite true")
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.Queue = queue.Queue(maxsize=BAG_QUEUE_LIMIT)
         self._opened = threading.Event()
         self._error: Exception | None = None
+        self._on_failure = on_failure
+        self.failure: str | None = None
+        self.written = self.dropped = 0
         self._thread = threading.Thread(target=self._run, args=(storage, overwrite, input_topic), name="bag-writer",
                                         daemon=True)
         self._thread.start()
@@ -180,18 +197,57 @@ class BagThread:
             self._opened.set()
             return
         self._opened.set()
+        checkpoint_at = time.monotonic() + BAG_CHECKPOINT_S
         while (item := self._queue.get()) is not None:
+            if self.failure is not None:
+                continue
             method, arguments = item
-            getattr(recorder, method)(*arguments)
-        recorder.close()
+            try:
+                getattr(recorder, method)(*arguments)
+                self.written += 1
+                if time.monotonic() >= checkpoint_at:
+                    checkpoint_at = time.monotonic() + BAG_CHECKPOINT_S
+                    self._checkpoint(recorder)
+            except Exception as error:  # noqa: BLE001 -- any failure ends the recording, in one line
+                self._fail(" ".join(str(error).split()) or type(error).__name__, recorder)
+        if self.failure is None:
+            try:
+                recorder.close()
+            except Exception as error:  # noqa: BLE001 -- as above
+                self._fail(f"finishing the bag: {' '.join(str(error).split())}", recorder)
+
+    def _checkpoint(self, recorder: BagRecorder) -> None:
+        recorder.checkpoint()
+        free = shutil.disk_usage(self.path.parent).free
+        if free < MIN_FREE_BYTES:
+            raise OSError(errno.ENOSPC, f"only {free / 2**20:.0f} MiB left on the disk (recording ends below "
+                                        f"{MIN_FREE_BYTES >> 20} MiB)")
+
+    def _fail(self, reason: str, recorder: BagRecorder) -> None:
+        try:
+            kept = f"the bag {recorder.close()} holds the {self.written} messages written"
+        except Exception as error:  # noqa: BLE001 -- say where the data are instead
+            kept = (f"what was written is in {recorder.staging} (the bag could not be finished: "
+                    f"{' '.join(str(error).split())})")
+        self.failure = f"recording stopped: {reason}; {kept}"
+        if self._on_failure is not None:
+            self._on_failure(self.failure)
+
+    def _put(self, item: tuple) -> None:
+        if self.failure is not None:
+            return
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            self.dropped += 1
 
     def write_input(self, stamp_ns: int, value: float) -> None:
         """Queue a current command [A] received at stamp_ns."""
-        self._queue.put(("write_input", (stamp_ns, value)))
+        self._put(("write_input", (stamp_ns, value)))
 
     def write_output(self, stamp_ns: int, position: float, velocity: float, receive_ns: int) -> None:
         """Queue a JointState (header stamp stamp_ns, position [m], velocity [m/s]) received at receive_ns."""
-        self._queue.put(("write_output", (stamp_ns, position, velocity, receive_ns)))
+        self._put(("write_output", (stamp_ns, position, velocity, receive_ns)))
 
     def close(self) -> Path:
         """Write what is queued, finish the bag (renamed into place) and return its path."""
@@ -234,6 +290,8 @@ class IdentificationNode(Node):
         self.create_service(Trigger, "~/clear", self.on_clear)
         self.push_client = self.create_client(
             SetParametersAtomically, f"{self.values['compensator_name']}/set_parameters_atomically")
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics))
         self.refit_service = WorkerService(self, Trigger, "refit", self.on_refit)
         self.get_logger().info("identification ready"
                                + (f", recording into {self.recorder.path}" if self.recorder else ""))
@@ -260,15 +318,18 @@ class IdentificationNode(Node):
             self.get_logger().warning(
                 f"{len(leftovers)} unfinished bag(s) of {path} from a recording that was killed, kept as they are "
                 f"(the storage file up to the kill, no metadata.yaml): {', '.join(map(str, leftovers))}")
-        return BagThread(Path(path), storage, overwrite, str(self.values["input_topic"]))
+        return BagThread(Path(path), storage, overwrite, str(self.values["input_topic"]),
+                         on_failure=self.get_logger().error)
 
     def close_bag(self) -> None:
         """Finish the bag being recorded (renamed into place)."""
         recorder, self.recorder = self.recorder, None
         if recorder is not None:
             path = recorder.close()
-            if self.context.ok():
-                self.get_logger().info(f"bag written: {path}")
+            if recorder.failure is None:
+                self.get_logger().info(f"bag written: {path} ({recorder.written} messages"
+                                       + (f", {recorder.dropped} dropped while the writer was behind)" if
+                                          recorder.dropped else ")"))
 
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         """Check changes; a new record_bag starts the new bag, then finishes the current one (a bag that cannot
@@ -298,6 +359,37 @@ class IdentificationNode(Node):
         if self.refit_service is not None:
             self.refit_service.close()
         super().destroy_node()
+
+    # --- health ----------------------------------------------------------------------------------
+
+    def diagnostic_status(self) -> DiagnosticStatus:
+        """The node's state as one DiagnosticStatus: ERROR when recording failed, WARN when the bag writer
+        dropped messages, else OK; the recording, the buffer, the excitation and the refit."""
+        recorder = self.recorder
+        level, text = DiagnosticStatus.OK, "exciting" if self.exciting else "refitting" if self.refitting else "idle"
+        if recorder is not None and recorder.failure is not None:
+            level, text = DiagnosticStatus.ERROR, recorder.failure
+        elif recorder is not None and recorder.dropped:
+            level, text = DiagnosticStatus.WARN, f"the bag writer fell behind: {recorder.dropped} messages dropped"
+        values = {
+            "recording": str(recorder.path) if recorder is not None else "off",
+            "bag_messages_written": recorder.written if recorder is not None else 0,
+            "bag_messages_dropped": recorder.dropped if recorder is not None else 0,
+            "buffer_inputs": len(self.inputs),
+            "buffer_outputs": len(self.outputs),
+            "exciting": self.exciting,
+            "excitation_left_s": round(self.excitation_left_s(), 3) if self.exciting else 0.0,
+            "refitting": self.refitting,
+        }
+        return DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: identification", message=text,
+                                hardware_id="sma_stage identification",
+                                values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
+
+    def publish_diagnostics(self) -> None:
+        """Publish the status on /diagnostics."""
+        array = DiagnosticArray(status=[self.diagnostic_status()])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(array)
 
     # --- recording -------------------------------------------------------------------------------
 
