@@ -335,3 +335,16 @@ def session_members(session: int) -> list[int]:
         if int(fields[3]) == session and fields[0] != "Z":
             members.append(int(stat.parent.name))
     return members
+
+
+def test_a_record_too_large_for_the_free_memory_is_refused_before_it_is_read(data, tmp_path, capsys, monkeypatch):
+    """A 10-million-row CSV under a 2 GB limit used to end in a MemoryError traceback."""
+    import sma_stage.commands.identify as identify_command
+
+    monkeypatch.setattr(identify_command, "available_memory_bytes", lambda: 100 << 20)
+    monkeypatch.setattr(identify_command, "load_series", lambda *a, **k: pytest.fail("the record was read"))
+    assert main(["fit", str(data[0]), "--out", str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert re.fullmatch(r"gpi_tool: error: the records hold about \d+ rows: the fit needs about [0-9.]+ GiB and "
+                        r"0\.1 GiB are free .*", error), error
+    assert not (tmp_path / "out").exists()

@@ -595,3 +595,14 @@ def test_the_fast_reader_and_the_strict_reader_agree(tmp_path):
     quoted.write_text(plain.read_text().replace('"', "'"))
     first, second = read_csv(plain), read_csv(quoted)
     assert np.array_equal(first.input, u) and np.array_equal(second.input, u) and np.array_equal(first.t, second.t)
+
+
+def test_a_long_curve_is_drawn_thinned_with_its_peaks():
+    from sma_stage.plots import MAX_DRAWN_POINTS, drawn_indices
+
+    values = np.sin(np.linspace(0.0, 100.0, 2_000_001))
+    values[777_777] = 5.0
+    shown = drawn_indices(values)
+    assert shown.size <= MAX_DRAWN_POINTS + 2 and np.all(np.diff(shown) > 0)
+    assert values[shown].max() == 5.0 and values[shown].min() == values.min()
+    assert drawn_indices(values[:100]).tolist() == list(range(100))

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import sys
 from pathlib import Path
 
@@ -46,8 +48,63 @@ def progress_line(text: str) -> None:
     print(f"gpi_tool: {text}", file=sys.stderr, flush=True)
 
 
+FIT_BYTES_PER_ROW = 400  # peak memory of gpi_tool fit per row of its records, over the interpreter's own
+BASE_BYTES = 200 << 20  # the interpreter with numpy, scipy, numba and the package (bench/bench_records.py)
+
+
+def check_memory(paths: list[Path | None]) -> None:
+    """InputError in one line when the CSV records given would need more memory than this machine has free
+    (estimated from their size and FIT_BYTES_PER_ROW, docs/reliability.md), before anything is read."""
+    rows = sum(estimated_rows(path) for path in paths if path is not None and path.is_file())
+    needed = BASE_BYTES + rows * FIT_BYTES_PER_ROW
+    available = available_memory_bytes()
+    if available is not None and needed > available:
+        raise InputError(f"the records hold about {rows:,} rows: the fit needs about {needed / 2**30:.1f} GiB and "
+                         f"{available / 2**30:.1f} GiB are free (thin the record, e.g. keep every 10th row: "
+                         "hysteresis is slow next to a 1 kHz logger)")
+
+
+def estimated_rows(path: Path, sample_bytes: int = 1 << 16) -> int:
+    """Rows of a CSV file estimated from its size and the length of its first lines."""
+    size = path.stat().st_size
+    with open(path, "rb") as file:
+        head = file.read(sample_bytes)
+    lines = head.count(b"\n")
+    return int(size / (len(head) / lines)) if lines else 1
+
+
+def available_memory_bytes() -> int | None:
+    """The memory this process may still take: the least of the free memory (MemAvailable), its cgroup's room
+    and its address-space limit; None when none of them can be read."""
+    limits = []
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                limits.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        maximum = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if maximum != "max":
+            limits.append(int(maximum) - int(Path("/sys/fs/cgroup/memory.current").read_text()))
+    except (OSError, ValueError):
+        pass
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        limits.append(soft - _resident_bytes())
+    return min(limits) if limits else None
+
+
+def _resident_bytes() -> int:
+    try:
+        return int(Path("/proc/self/statm").read_text().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError):
+        return 0
+
+
 def run_fit(args: argparse.Namespace) -> dict:
     """Fit the GPI; validate on --validate data when given; write model.yaml, report.json/.md, fit.png."""
+    check_memory([args.data, args.validate])
     with RunFolder(args.out) as run:
         data = read_data(args.data, args)
         valid = read_data(args.validate, args) if args.validate else None
@@ -64,6 +121,7 @@ def run_fit(args: argparse.Namespace) -> dict:
 def run_diagnose(args: argparse.Namespace) -> dict:
     """Fit, test the validation residual, add the effects the model lacks, report before and after; the
     model written is the GPI with those effects."""
+    check_memory([args.data, args.validate])
     with RunFolder(args.out) as run:
         data = read_data(args.data, args)
         valid = read_data(args.validate, args) if args.validate else None
