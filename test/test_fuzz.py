@@ -71,6 +71,41 @@ def test_the_model_file_reader_answers_a_model_or_one_line(edits):
         assert isinstance(model, IdentifiedModel)
 
 
+yaml_keys = st.one_of(st.sampled_from(["kind", "operators", "parameters", "a1", "a9", "effects", "state", "x"]),
+                      st.integers(-3, 3), st.booleans(), st.none())
+yaml_scalars = st.one_of(FINITE, st.integers(-(10**400), 10**400), st.text(max_size=5), st.booleans(), st.none())
+yaml_documents = st.recursive(yaml_scalars, lambda inner: st.one_of(
+    st.lists(inner, max_size=4), st.dictionaries(yaml_keys, inner, max_size=4)), max_leaves=12)
+
+
+@FAST
+@given(replacement=yaml_documents, where=st.sampled_from(["parameters", "operators", "effects", "state", "top"]),
+       depth=st.integers(0, 200))
+def test_any_yaml_structure_in_a_model_answers_a_model_or_one_line(replacement, where, depth):
+    """Mixed-type keys, integers beyond a float, nesting (up to 200 levels): a model or one line, never a
+    TypeError, OverflowError or RecursionError (which used to end the compensator)."""
+    import yaml
+
+    document = yaml.safe_load(SHIPPED_TEXT)
+    nested = replacement
+    for _ in range(depth):
+        nested = [nested]
+    if where == "top":
+        document = nested
+    else:
+        document[where] = nested
+    try:
+        text = yaml.safe_dump(document)
+    except (yaml.YAMLError, RecursionError):
+        return  # a structure the YAML writer itself cannot write
+    try:
+        model = IdentifiedModel.from_yaml_text(text)
+    except InputError as error:
+        assert one_line(error), str(error)
+    else:
+        assert isinstance(model, IdentifiedModel)
+
+
 @FAST
 @given(targets=st.lists(FINITE, min_size=1, max_size=20), method=st.sampled_from(["exact", "analytic"]))
 def test_the_inverse_gives_a_current_within_its_range_for_any_finite_target(targets, method):
