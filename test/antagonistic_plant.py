@@ -1,0 +1,290 @@
+"""A second physical SMA stage, written for the tests from another formulation than the package's simulator
+(sma_stage/plant/physics.py: Brinson-type phase kinetics with cosine laws, wires cut into nodes). It imports
+nothing from sma_stage; `main` alone, which prints the table of docs/identification.md, calls the package.
+
+Two NiTi wires work against each other through a lever; a relay sends the current to wire A (u > 0) or wire B
+(u < 0). Per wire, per sub-step:
+- temperature, one lump: m c dT/dt = u^2 R(xi) - h (T - T_ambient), the resistance rising with the martensite
+  fraction xi (solved exactly over the sub-step for the frozen power);
+- transformation: a Preisach continuum of temperature hysterons (a triangular grid of relays with switch-up
+  temperatures alpha >= switch-down temperatures beta, Gaussian weights around the austenite and martensite
+  transformation ranges); each relay sees T - sigma / C_CLAUSIUS, so the stress the wire carries raises its
+  transformation temperatures (Clausius-Clapeyron) - stress and position tie the two wires together;
+- detwinning: the martensite that forms carries the recoverable strain only once the stress has detwinned
+  it, D(sigma) rising between SIGMA_DETWIN_START and SIGMA_DETWIN_FINISH; detwinned martensite stays
+  detwinned when the stress falls, and the austenite that forms takes from both kinds in proportion;
+- mechanics: sigma = E(xi) (epsilon - EPSILON_L * xi_detwinned), tension only (a slack wire carries
+  nothing), E from the austenite and martensite moduli in series; the two wires and a flexure balance
+  at the wire-end displacement w (solved per sub-step by bisection, the force being monotone in w);
+- the sensor: position = LEVER * w, with Gaussian noise NOISE_PCT % of the recorded span.
+
+`python test/antagonistic_plant.py [--variants nominal,thin_wires,...]` prints the diagnosis's table for the
+paper's identification and validation signals (1000 s each at 0.2 s).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+SAMPLE_PERIOD_S = 0.2
+SUBSTEPS = 5
+NOISE_PCT = 0.2
+HISTORY_S = 200.0  # at zero current before the record: the wires settle from the initial state
+GRID = 60  # hysterons per side of the Preisach triangle
+
+
+@dataclass(frozen=True)
+class Stage:
+    """The stage's physical constants (SI)."""
+
+    wire_diameter_m: float = 0.6e-3
+    wire_length_m: float = 0.10
+    density_kg_m3: float = 6450.0
+    specific_heat_j_kg_k: float = 837.0
+    convection_w_m2_k: float = 150.0  # forced air
+    resistivity_austenite_ohm_m: float = 0.82e-6
+    resistivity_martensite_ohm_m: float = 1.00e-6
+    ambient_k: float = 295.0
+    austenite_start_k: float = 333.0  # the relays' switch-up temperatures spread around this ..
+    austenite_finish_k: float = 358.0  # .. to this, at zero stress
+    martensite_start_k: float = 318.0  # switch-down temperatures from this ..
+    martensite_finish_k: float = 293.0  # .. to this
+    clausius_pa_per_k: float = 7.0e6
+    modulus_austenite_pa: float = 70e9
+    modulus_martensite_pa: float = 28e9
+    recoverable_strain: float = 0.04
+    detwin_start_pa: float = 50e6
+    detwin_finish_pa: float = 200e6
+    prestrain: float = 0.043  # each wire stretched by this at w = 0: both stay taut
+    flexure_n_per_m: float = 30.0e3  # at the wire end
+    lever: float = 0.12  # stage position per wire-end displacement (a reducing lever)
+
+
+VARIANTS = {
+    "nominal": Stage(),
+    "thin_wires": Stage(wire_diameter_m=0.5e-3, convection_w_m2_k=170.0),
+    "hot_alloy": Stage(austenite_start_k=345.0, austenite_finish_k=372.0, martensite_start_k=330.0,
+                       martensite_finish_k=303.0),
+    "stiff_flexure": Stage(flexure_n_per_m=120.0e3, prestrain=0.045),
+}
+
+
+class Wire:
+    """One wire's temperature, relays and detwinned fraction."""
+
+    def __init__(self, stage: Stage) -> None:
+        self.stage = stage
+        up, down = np.meshgrid(np.linspace(stage.austenite_start_k - 8.0, stage.austenite_finish_k + 8.0, GRID),
+                               np.linspace(stage.martensite_finish_k - 8.0, stage.martensite_start_k + 8.0, GRID),
+                               indexing="ij")
+        keep = up > down
+        self.alpha, self.beta = up[keep], down[keep]
+        centre_up = 0.5 * (stage.austenite_start_k + stage.austenite_finish_k)
+        centre_down = 0.5 * (stage.martensite_start_k + stage.martensite_finish_k)
+        spread_up = (stage.austenite_finish_k - stage.austenite_start_k) / 3.0
+        spread_down = (stage.martensite_start_k - stage.martensite_finish_k) / 3.0
+        weights = np.exp(-0.5 * (((self.alpha - centre_up) / spread_up) ** 2
+                                 + ((self.beta - centre_down) / spread_down) ** 2))
+        self.weights = weights / weights.sum()
+        self.austenite = np.zeros(self.alpha.size, dtype=bool)  # all martensite at the start, cold
+        self._martensite = 1.0
+        self.temperature_k = stage.ambient_k
+        self.detwinned = 1.0  # the prestrain detwinned the martensite when the stage was assembled
+        area = np.pi * stage.wire_diameter_m ** 2 / 4.0
+        self.area_m2 = area
+        self.heat_capacity_j_k = stage.density_kg_m3 * stage.specific_heat_j_kg_k * area * stage.wire_length_m
+        self.loss_w_k = stage.convection_w_m2_k * np.pi * stage.wire_diameter_m * stage.wire_length_m
+
+    @property
+    def martensite(self) -> float:
+        """Martensite fraction xi."""
+        return self._martensite
+
+    def resistance_ohm(self) -> float:
+        stage, xi = self.stage, self.martensite
+        resistivity = stage.resistivity_austenite_ohm_m + xi * (stage.resistivity_martensite_ohm_m
+                                                               - stage.resistivity_austenite_ohm_m)
+        return resistivity * stage.wire_length_m / self.area_m2
+
+    def heat(self, current_a: float, dt_s: float) -> None:
+        """Advance the temperature over dt_s with the Joule power frozen over the step (exact for a linear loss)."""
+        power = current_a ** 2 * self.resistance_ohm()
+        target = self.stage.ambient_k + power / self.loss_w_k
+        decay = np.exp(-dt_s * self.loss_w_k / self.heat_capacity_j_k)
+        self.temperature_k = target + (self.temperature_k - target) * decay
+
+    def transform(self, stress_pa: float) -> None:
+        """Switch the relays at the stress-shifted temperature; austenite that forms takes from both martensites."""
+        before = self.martensite
+        seen = self.temperature_k - stress_pa / self.stage.clausius_pa_per_k
+        self.austenite = np.where(seen >= self.alpha, True, np.where(seen <= self.beta, False, self.austenite))
+        self._martensite = after = 1.0 - float(self.weights[self.austenite].sum())
+        if after < before and before > 0.0:
+            self.detwinned *= after / before
+
+    def detwin(self, stress_pa: float) -> None:
+        """Stress above the detwinning start detwins martensite; detwinned martensite stays so."""
+        stage = self.stage
+        share = np.clip((stress_pa - stage.detwin_start_pa) / (stage.detwin_finish_pa - stage.detwin_start_pa),
+                        0.0, 1.0)
+        share = share * share * (3.0 - 2.0 * share)
+        xi = self.martensite
+        self.detwinned = min(xi, max(self.detwinned, xi * share)) if xi > 0.0 else 0.0
+
+    def modulus_pa(self) -> float:
+        """Young's modulus, austenite and martensite in series."""
+        stage, xi = self.stage, self.martensite
+        return 1.0 / ((1.0 - xi) / stage.modulus_austenite_pa + xi / stage.modulus_martensite_pa)
+
+    def stress_pa(self, strain: float) -> float:
+        """Tension for a total strain (zero when slack)."""
+        return max(self.modulus_pa() * (strain - self.stage.recoverable_strain * self.detwinned), 0.0)
+
+
+class AntagonisticStage:
+    """The two wires, the flexure and the lever."""
+
+    def __init__(self, stage: Stage) -> None:
+        self.stage = stage
+        self.wires = (Wire(stage), Wire(stage))
+        self.displacement_m = 0.0
+        self.stresses = (0.0, 0.0)
+        self.balance()
+
+    def strains(self, w: float) -> tuple[float, float]:
+        stage = self.stage
+        return stage.prestrain - w / stage.wire_length_m, stage.prestrain + w / stage.wire_length_m
+
+    def balance(self) -> None:
+        """The wire-end displacement where the wires and the flexure balance. The net force is piecewise linear and
+        falling in w (each wire elastic while taut, slack beyond its break point): it is solved exactly on the
+        piece where it changes sign."""
+        stage, (wire_a, wire_b) = self.stage, self.wires
+        length, prestrain = stage.wire_length_m, stage.prestrain
+        stiff_a = wire_a.area_m2 * wire_a.modulus_pa() / length  # N/m while taut
+        stiff_b = wire_b.area_m2 * wire_b.modulus_pa() / length
+        slack_a = length * (prestrain - stage.recoverable_strain * wire_a.detwinned)  # A slack for w >= this
+        slack_b = length * (stage.recoverable_strain * wire_b.detwinned - prestrain)  # B slack for w <= this
+
+        def force(w: float) -> float:
+            return stiff_a * max(slack_a - w, 0.0) - stiff_b * max(w - slack_b, 0.0) - stage.flexure_n_per_m * w
+
+        points = sorted((slack_a, slack_b, 0.0))
+        low, high = points[0] - length, points[-1] + length
+        for point in points:
+            if force(point) > 0.0:
+                low = point
+            else:
+                high = point
+                break
+        force_low, force_high = force(low), force(high)
+        self.displacement_m = low + (high - low) * force_low / (force_low - force_high)
+        strain_a, strain_b = self.strains(self.displacement_m)
+        self.stresses = (wire_a.stress_pa(strain_a), wire_b.stress_pa(strain_b))
+
+    def step(self, current_a: float, dt_s: float) -> None:
+        """One sub-step: heat the wire the relay selects (both cool), transform, balance, detwin, balance."""
+        heated = (max(current_a, 0.0), max(-current_a, 0.0))
+        for wire, current, stress in zip(self.wires, heated, self.stresses, strict=True):
+            wire.heat(current, dt_s)
+            wire.transform(stress)
+        self.balance()
+        for wire, stress in zip(self.wires, self.stresses, strict=True):
+            wire.detwin(stress)
+        self.balance()
+
+    @property
+    def position_m(self) -> float:
+        return self.stage.lever * self.displacement_m
+
+
+def simulate(current: np.ndarray, stage: Stage = Stage(), seed: int = 0,
+             history: np.ndarray | None = None) -> np.ndarray:
+    """Positions [m] at each sample of current [A] (held over SAMPLE_PERIOD_S), after HISTORY_S at zero current
+    (or the history given), with noise NOISE_PCT % of the recorded span."""
+    plant = AntagonisticStage(stage)
+    dt = SAMPLE_PERIOD_S / SUBSTEPS
+    before = np.zeros(int(HISTORY_S / SAMPLE_PERIOD_S)) if history is None else history
+    for value in before:
+        for _ in range(SUBSTEPS):
+            plant.step(float(value), dt)
+    positions = np.empty(current.size)
+    for k, value in enumerate(current):
+        positions[k] = plant.position_m
+        for _ in range(SUBSTEPS):
+            plant.step(float(value), dt)
+    span = float(np.ptp(positions))
+    return positions + np.random.default_rng(seed).normal(0.0, NOISE_PCT / 100.0 * span, positions.size)
+
+
+def paper_identification(t: np.ndarray) -> np.ndarray:
+    """The paper's decaying sine, 5 A falling to 3.6 A over 1000 s, period 250 s (written out here)."""
+    return (5.0 - 1.4 * np.clip(t / 1000.0, 0.0, 1.0)) * np.sin(2.0 * np.pi * t / 250.0)
+
+
+def paper_validation(t: np.ndarray) -> np.ndarray:
+    """The paper's validation input 2.5 cos(0.01 pi t) + 2.5 cos(0.02 t) [A]."""
+    return 2.5 * np.cos(0.01 * np.pi * t) + 2.5 * np.cos(0.02 * t)
+
+
+def records(stage: Stage, seed: int = 0, duration_s: float = 1000.0) -> dict[str, tuple[np.ndarray, ...]]:
+    """(t, input, output) of the identification and the validation records, each from its own settled stage."""
+    t = np.arange(0.0, duration_s, SAMPLE_PERIOD_S)
+    found = {}
+    for number, (name, signal) in enumerate((("identification", paper_identification),
+                                             ("validation", paper_validation))):
+        u = signal(t)
+        found[name] = (t, u, simulate(u, stage, seed + number))
+    return found
+
+
+def main() -> None:
+    import argparse
+    import sys
+    import tempfile
+    import time
+    from pathlib import Path
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--variants", default=",".join(VARIANTS))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rounds", type=int, default=4)
+    args = parser.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from sma_stage.cli import main as gpi_tool
+
+    print("| variant | span [mm] | model | identification RMS % | validation RMS % | validation max % | seconds |")
+    print("|---|---|---|---|---|---|---|")
+    for name in args.variants.split(","):
+        made = records(VARIANTS[name], args.seed)
+        with tempfile.TemporaryDirectory() as folder:
+            paths = {}
+            for kind, (t, u, y) in made.items():
+                paths[kind] = Path(folder) / f"{kind}.csv"
+                np.savetxt(paths[kind], np.c_[t, u, y], delimiter=",", header="t,input,output", comments="")
+            started = time.perf_counter()
+            import contextlib
+            import io
+            import json
+
+            out = io.StringIO()
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+                gpi_tool(["diagnose", str(paths["identification"]), "--validate", str(paths["validation"]),
+                          "--rounds", str(args.rounds), "--workers", "2", "--out", str(Path(folder) / "out"),
+                          "--json"])
+            report = json.loads(out.getvalue())
+            seconds = time.perf_counter() - started
+        diagnosis = report["diagnosis"]
+        span = 1e3 * float(np.ptp(made["identification"][2]))
+        before, after = diagnosis["before"]["validation"], diagnosis["after"]["validation"]
+        print(f"| {name} | {span:.3f} | plain GPI | {report['identification']['rms_pct']:.2f} | "
+              f"{before['rms_pct']:.2f} | {before['max_pct']:.1f} | |")
+        named = " + ".join(diagnosis["effects"]) or "none"
+        print(f"| {name} | | diagnosed: {named} | | {after['rms_pct']:.2f} | {after['max_pct']:.1f} | {seconds:.0f} |",
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()
