@@ -4,6 +4,7 @@ nodes and shuts down quietly."""
 
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import gc
 import math
@@ -281,6 +282,21 @@ class StopRequest:
         return self.phase == "spinning"
 
 
+class StartedNodes:
+    """The nodes whose handles exist in this process's run_nodes, noted by each node as soon as it has one
+    (`note_started`): a stop that interrupts a constructor leaves a node that was never returned, and a node
+    left undestroyed when the context shuts down aborts the process at exit ("terminate called without an
+    active exception")."""
+
+    nodes: list[Node] | None = None
+
+
+def note_started(node: Node) -> None:
+    """Called by each node right after Node.__init__: run_nodes then destroys it however its start ends."""
+    if StartedNodes.nodes is not None:
+        StartedNodes.nodes.append(node)
+
+
 def run_node(make_node: Callable[..., Node], args: Sequence[str] | None = None, executor_kind: str = "events") -> int:
     """Init rclpy, build the node, spin until Ctrl-C/SIGTERM, close and shut down; 2 and one line for bad
     parameters.
@@ -305,6 +321,7 @@ def run_nodes(makers: Sequence[Callable[..., Node]], args: Sequence[str] | None 
     stop = StopRequest()
     stop.install()
     nodes: list[Node] = []
+    StartedNodes.nodes = []
     executor = None
     building = makers[0]
     status = 0
@@ -326,14 +343,21 @@ def run_nodes(makers: Sequence[Callable[..., Node]], args: Sequence[str] | None 
     finally:
         stop.phase = "closing"
         faulthandler.dump_traceback_later(TEARDOWN_LIMIT_S, exit=True)
-        close_all(nodes, executor)
+        unfinished = [node for node in StartedNodes.nodes if all(node is not built for built in nodes)]
+        StartedNodes.nodes = None
+        close_all(nodes, executor, unfinished)
         stop.restore()
     return status
 
 
-def close_all(nodes: Sequence[Node], executor: object | None) -> None:
+def close_all(nodes: Sequence[Node], executor: object | None, unfinished: Sequence[Node] = ()) -> None:
     """Close the nodes (their close(), on a context still valid), stop the executor, destroy the nodes in
-    reverse order and shut the context down."""
+    reverse order and shut the context down. `unfinished`: nodes a stop interrupted in their constructor, closed
+    as far as they got and destroyed first."""
+    for node in unfinished:
+        with contextlib.suppress(Exception):  # a half-built node's close() meets attributes not yet set
+            getattr(node, "close", lambda: None)()
+        node.destroy_node()
     for node in reversed(nodes):
         close = getattr(node, "close", None)
         if close is not None:

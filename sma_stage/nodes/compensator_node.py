@@ -60,6 +60,7 @@ from sma_stage.nodes._common import (
     declare_all,
     exit_with,
     finite,
+    note_started,
     quiet_on_shutdown,
     run_node,
 )
@@ -127,6 +128,7 @@ class CompensatorNode(Node):
 
     def __init__(self, **node_options: object) -> None:
         super().__init__(self.NODE_NAME, **node_options)
+        note_started(self)
         self._lock = threading.RLock()
         try:
             self.values = declare_all(self, COMPENSATOR_PARAMS)

@@ -63,6 +63,7 @@ from sma_stage.nodes._common import (
     WorkerService,
     declare_all,
     exit_with,
+    note_started,
     quiet_on_shutdown,
     run_node,
 )
@@ -262,10 +263,11 @@ class IdentificationNode(Node):
     NODE_NAME = "identification"
 
     def __init__(self, **node_options: object) -> None:
-        super().__init__(self.NODE_NAME, **node_options)
         self._lock = threading.Lock()
-        self.recorder: BagThread | None = None
+        self.recorder: BagThread | None = None  # set before the handle exists: destroy_node reads them
         self.refit_service: WorkerService | None = None
+        super().__init__(self.NODE_NAME, **node_options)
+        note_started(self)
         try:
             self.values = declare_all(self, IDENTIFICATION_PARAMS)
             self.check_storage(str(self.values["bag_storage"]))

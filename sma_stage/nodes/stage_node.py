@@ -54,6 +54,7 @@ from sma_stage.nodes._common import (
     declare_all,
     exit_with,
     finite,
+    note_started,
     quiet_on_shutdown,
     run_node,
 )
@@ -157,6 +158,7 @@ class StageNode(LifecycleNode):
 
     def __init__(self, **node_options: object) -> None:
         super().__init__(self.NODE_NAME, **node_options)
+        note_started(self)
         try:
             values = declare_all(self, STAGE_PARAMS)
             self.autostart = check_choice("autostart", str(values["autostart"]), AUTOSTART)
