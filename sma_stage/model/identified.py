@@ -14,6 +14,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -32,6 +33,9 @@ from sma_stage.model.parameters import (
     float_or_inf,
     shown_number,
 )
+
+if TYPE_CHECKING:
+    from sma_stage.model.two_wire import TwoWireModel
 
 SCHEMA_VERSION = 1
 TOP_KEYS = ("schema_version", "kind", "output_unit", "operators", "parameters", "effects", "state", "metadata")
@@ -249,6 +253,21 @@ def load_model_file(path: str | os.PathLike) -> IdentifiedModel:
     text = read_text_file(path, "model file")
     try:
         return IdentifiedModel.from_yaml_text(text)
+    except InputError as error:
+        raise InputError(f"model file {Path(path)}: {error}") from None
+
+
+def load_any_model_file(path: str | os.PathLike) -> IdentifiedModel | TwoWireModel:
+    """A model file of any family, by its `kind` (gpi, the default, or two_wire); problems as load_model_file."""
+    from sma_stage.model.two_wire import KIND as TWO_WIRE
+    from sma_stage.model.two_wire import TwoWireModel
+
+    text = read_text_file(path, "model file")
+    try:
+        document = parse_yaml(text)
+        if isinstance(document, dict) and document.get("kind") == TWO_WIRE:
+            return TwoWireModel.from_dict(document)
+        return IdentifiedModel.from_dict(document)
     except InputError as error:
         raise InputError(f"model file {Path(path)}: {error}") from None
 

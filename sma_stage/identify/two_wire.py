@@ -1,0 +1,138 @@
+"""Identification of the two-wire model (sma_stage.model.two_wire) from a record: bounded nonlinear least
+squares (scipy's trust-region reflective) on the output error, from several starts searched on a thinned copy of
+the record, the best polished on all of it. Plain arrays in, a result object out.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from sma_stage.errors import InputError
+from sma_stage.identify.cancel import check_cancelled
+from sma_stage.identify.fit import check_data, information_criterion
+from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.model.identified import _record
+from sma_stage.model.two_wire import SCALARS, TwoWireModel, TwoWireParameters
+
+WIRE_OPERATORS = 4
+OUTPUT_OPERATORS = 5
+STARTS = 4
+SEARCH_SAMPLES = 2500  # the starts run on a copy thinned to about this many samples
+SEARCH_EVALUATIONS = 1500
+POLISH_EVALUATIONS = 1500
+MIN_HEATED_SAMPLES = 10  # each wire must be heated in at least this many samples
+TAU_RANGE_S = (0.05, 500.0)
+
+
+@dataclass(frozen=True)
+class TwoWireFit:
+    """A fitted two-wire model, its prediction of the record [output unit], its errors, the residual sum of
+    squares `cost` [output unit^2], the BIC, the evaluations spent and the seconds taken."""
+
+    model: TwoWireModel
+    predicted: np.ndarray
+    errors: ErrorMetrics
+    cost: float
+    bic: float
+    evaluations: int
+    seconds: float
+
+    @property
+    def parameter_count(self) -> int:
+        """Free parameters."""
+        return self.model.parameter_count
+
+
+def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
+                 output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
+                 output_unit: str = "m") -> TwoWireFit:
+    """The two-wire model that best predicts y [output unit] from u [A] at times t [s], the record starting
+    from a stage at rest. InputError (one line) when the record cannot identify it."""
+    started = time.perf_counter()
+    t, u = _record(t, u)
+    u, y = check_data(u, y)
+    for name, count in (("wire_operators", wire_operators), ("output_operators", output_operators),
+                        ("starts", starts)):
+        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 1 <= count <= 50:
+            raise InputError(f"{name} must be an integer from 1 to 50, got {count!r}")
+    for wire, heated in (("a (u > 0)", u > 0.0), ("b (u < 0)", u < 0.0)):
+        if np.count_nonzero(heated) < MIN_HEATED_SAMPLES:
+            raise InputError(f"the two-wire model needs both wires heated: wire {wire} is heated in "
+                             f"{np.count_nonzero(heated)} samples (at least {MIN_HEATED_SAMPLES})")
+    problem = _Problem(t, u, y, wire_operators, output_operators)
+    thin = max(1, t.size // SEARCH_SAMPLES)
+    search = _Problem(t[::thin], u[::thin], y[::thin], wire_operators, output_operators) if thin > 1 else problem
+    rng = np.random.default_rng(seed)
+    evaluations, best = 0, None
+    for _ in range(starts):
+        check_cancelled()
+        found = search.solve(search.random_start(rng), SEARCH_EVALUATIONS)
+        evaluations += found.nfev
+        if best is None or found.cost < best.cost:
+            best = found
+    if search is not problem:
+        polished = problem.solve(best.x, POLISH_EVALUATIONS)
+        evaluations += polished.nfev
+        best = polished
+    model = TwoWireModel(problem.parameters(best.x), output_unit)
+    predicted, end = model.run(t, u)
+    cost = float(np.sum((predicted - y) ** 2))
+    model = TwoWireModel(model.parameters, output_unit, end, {"identified_samples": int(t.size)})
+    return TwoWireFit(model, predicted, error_metrics(y, predicted), cost,
+                      information_criterion(cost, t.size, model.parameter_count), evaluations,
+                      time.perf_counter() - started)
+
+
+class _Problem:
+    """The least-squares problem over the free parameters (the heating reference fixed at the record's largest
+    current), residuals in units of the output's span."""
+
+    def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int,
+                 output_operators: int) -> None:
+        self.t, self.u, self.y = t, u, y
+        self.n, self.m = wire_operators, output_operators
+        self.reference = float(np.max(np.abs(u)))
+        self.span = float(np.ptp(y))
+        self.low, self.high = self._bounds()
+
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        reference, span, level = self.reference, self.span, float(np.max(np.abs(self.y)))
+        coupling = 50.0 * reference / span
+        scalars = {"tau_a_s": TAU_RANGE_S, "tau_b_s": TAU_RANGE_S, "coupling_a": (-coupling, coupling),
+                   "coupling_b": (-coupling, coupling), "centre_a": (-reference, 2.0 * reference),
+                   "centre_b": (-reference, 2.0 * reference), "width_a": (0.005 * reference, reference),
+                   "width_b": (0.005 * reference, reference), "hysteresis_a": (0.0, reference),
+                   "hysteresis_b": (0.0, reference), "stroke_a": (0.0, 3.0 * span), "stroke_b": (0.0, 3.0 * span),
+                   "offset": (-level - span, level + span), "output_threshold": (0.0, span)}
+        free = [name for name in SCALARS if name != "heating_reference_a"]
+        weights = 2 * self.n + self.m
+        low = np.r_[[scalars[name][0] for name in free], np.zeros(weights)]
+        high = np.r_[[scalars[name][1] for name in free], np.full(weights, 3.0)]
+        return low, high
+
+    def random_start(self, rng: np.random.Generator) -> np.ndarray:
+        """A start inside the bounds: both wires alike, transformation mid-range, no coupling to begin with."""
+        reference, span = self.reference, self.span
+        pair = lambda low, high: np.full(2, rng.uniform(low, high))  # noqa: E731 -- both wires alike
+        start = np.r_[pair(2.0, 20.0), rng.uniform(-1.0, 1.0, 2) * reference / span, pair(0.3, 0.8) * reference,
+                      pair(0.05, 0.2) * reference, pair(0.05, 0.3) * reference, np.full(2, span / 2.0),
+                      float(np.mean(self.y)) - 0.0, rng.uniform(0.01, 0.2) * span,
+                      np.full(2 * self.n, 1.0 / self.n), np.full(self.m, 1.0 / self.m)]
+        return np.clip(start, self.low + 1e-9 * (self.high - self.low), self.high - 1e-9 * (self.high - self.low))
+
+    def parameters(self, free: np.ndarray) -> TwoWireParameters:
+        """The model's parameters for a vector of the free ones."""
+        full = np.insert(free, SCALARS.index("heating_reference_a"), self.reference)
+        return TwoWireParameters.from_array(full, self.n, self.m)
+
+    def residuals(self, free: np.ndarray) -> np.ndarray:
+        check_cancelled()
+        return (TwoWireModel(self.parameters(free)).predict(self.t, self.u) - self.y) / self.span
+
+    def solve(self, start: np.ndarray, evaluations: int) -> object:
+        return least_squares(self.residuals, start, bounds=(self.low, self.high), x_scale="jac",
+                             max_nfev=evaluations)

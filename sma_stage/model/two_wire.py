@@ -1,0 +1,441 @@
+"""The two-wire model of an antagonistic SMA stage, a model family beside the GPI (no ROS).
+
+Each wire has its own temperature and its own hysteresis in it; the stage's output is a hysteresis of what the
+two wires' transformations pull together. Per wire w (a: heated by u > 0, b: by u < 0, the relay):
+- temperature, in A of heating: tau_w dtheta_w/dt = drive_w - theta_w, drive_a = u^2 / u_ref for u > 0 (else 0),
+  drive_b the same for u < 0 (u_ref = heating_reference_a): theta settles at the current's Joule heating;
+- transformation: what the wire sees is its temperature shifted by the stress the stage's position puts on it
+  (Clausius-Clapeyron), seen_a = theta_a - coupling_a y, seen_b = theta_b + coupling_b y; the transformed
+  fraction x_w = sum_j p_wj sigma((P_rj[seen_w] - centre_w) / width_w), P_r the play operator of threshold
+  r_j = hysteresis_w j / (n - 1) and sigma(s) = (1 + tanh s) / 2 (a Preisach-like family of transformation
+  curves, the weights p_wj >= 0 free);
+- output: m = stroke_a x_a - stroke_b x_b, y = offset + sum_k q_k P_sk[m], s_k = output_threshold k / (m - 1),
+  q_k >= 0 (the detwinning left in the cold wire, which makes the output lag what the wires pull).
+
+Sampling: y[k] is the position measured at t[k]; the current u[k] is applied from t[k] to t[k+1] (held, as a
+sampled drive and a compensator's command are). So y[k] depends on u[0..k-1] and the state before the record,
+and the exact inverse is the current that, held over the next period, brings the output to the target.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+
+import numba
+import numpy as np
+import yaml
+
+from sma_stage.errors import InputError
+from sma_stage.io.atomic import atomic_write_text
+from sma_stage.io.plain import plain_values
+from sma_stage.model.parameters import float_or_inf, shown_number
+
+KIND = "two_wire"
+SCHEMA_VERSION = 1
+SCALARS = ("tau_a_s", "tau_b_s", "heating_reference_a", "coupling_a", "coupling_b", "centre_a", "centre_b",
+           "width_a", "width_b", "hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "offset",
+           "output_threshold")
+WEIGHTS = ("weights_a", "weights_b", "output_weights")
+POSITIVE = ("tau_a_s", "tau_b_s", "heating_reference_a", "width_a", "width_b")
+NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold")
+MAX_OPERATORS = 50
+TOP_KEYS = ("schema_version", "kind", "output_unit", "parameters", "state", "metadata")
+STATE_KEYS = ("time_s", "current_a", "values")
+HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hysteresis in it, the output a\n"
+          "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
+INVERSE_ITERATIONS = 60  # bisection halvings of the current range: 10 A / 2^60, far below any step's effect
+
+
+@dataclass(frozen=True)
+class TwoWireParameters:
+    """The model's scalars (units: s, A of heating, output unit; couplings in A per output unit) and its three
+    weight vectors (dimensionless, >= 0)."""
+
+    values: Mapping[str, float]
+    weights_a: tuple[float, ...]
+    weights_b: tuple[float, ...]
+    output_weights: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        values = dict(self.values)
+        missing = [name for name in SCALARS if name not in values]
+        unknown = [str(name) for name in values if name not in SCALARS]
+        if missing:
+            raise InputError(f"two-wire parameters missing: {', '.join(missing)}")
+        if unknown:
+            raise InputError(f"unknown two-wire parameter {unknown[0]!r} (known: {', '.join(SCALARS)})")
+        values = {name: _finite(values[name], name) for name in SCALARS}
+        for name in POSITIVE:
+            if values[name] <= 0.0:
+                raise InputError(f"two-wire parameter {name} must be > 0, got {values[name]:g}")
+        for name in NON_NEGATIVE:
+            if values[name] < 0.0:
+                raise InputError(f"two-wire parameter {name} must be >= 0, got {values[name]:g}")
+        object.__setattr__(self, "values", values)
+        for name in WEIGHTS:
+            weights = getattr(self, name)
+            if not isinstance(weights, (list, tuple, np.ndarray)):
+                raise InputError(f"two-wire {name} must be a list of numbers")
+            weights = tuple(_finite(value, name) for value in weights)
+            if not 1 <= len(weights) <= MAX_OPERATORS:
+                raise InputError(f"two-wire {name} must hold 1 to {MAX_OPERATORS} weights, got {len(weights)}")
+            if min(weights) < 0.0:
+                raise InputError(f"two-wire {name} must be >= 0 (the model must rise with each wire's heating)")
+            object.__setattr__(self, name, weights)
+        if len(self.weights_a) != len(self.weights_b):
+            raise InputError(f"weights_a and weights_b differ in length ({len(self.weights_a)}, {len(self.weights_b)})")
+
+    @property
+    def wire_operators(self) -> int:
+        """Play operators per wire."""
+        return len(self.weights_a)
+
+    @property
+    def output_operators(self) -> int:
+        """Play operators of the output layer."""
+        return len(self.output_weights)
+
+    def as_array(self) -> np.ndarray:
+        """The kernel's parameter vector: the scalars in SCALARS order, then weights_a, weights_b, output_weights."""
+        return np.array([self.values[name] for name in SCALARS] + list(self.weights_a) + list(self.weights_b)
+                        + list(self.output_weights))
+
+    @classmethod
+    def from_array(cls, vector: np.ndarray, wire_operators: int, output_operators: int) -> TwoWireParameters:
+        """The inverse of as_array."""
+        vector = np.asarray(vector, dtype=float).ravel()
+        count = len(SCALARS)
+        if vector.size != count + 2 * wire_operators + output_operators:
+            raise InputError(f"expected {count + 2 * wire_operators + output_operators} two-wire values, "
+                             f"got {vector.size}")
+        split = (count, count + wire_operators, count + 2 * wire_operators)
+        return cls(dict(zip(SCALARS, vector[:count].tolist(), strict=True)), tuple(vector[split[0]:split[1]]),
+                   tuple(vector[split[1]:split[2]]), tuple(vector[split[2]:]))
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain values for YAML."""
+        return {**self.values, **{name: list(getattr(self, name)) for name in WEIGHTS}}
+
+    @classmethod
+    def from_dict(cls, document: object) -> TwoWireParameters:
+        """The parameters from a mapping of SCALARS and WEIGHTS."""
+        if not isinstance(document, dict):
+            raise InputError("two-wire parameters must be a mapping")
+        weights = {name: document.get(name) for name in WEIGHTS}
+        for name, value in weights.items():
+            if value is None:
+                raise InputError(f"two-wire parameters missing: {name}")
+        scalars = {key: value for key, value in document.items() if key not in WEIGHTS}
+        return cls(scalars, *(weights[name] for name in WEIGHTS))
+
+    @property
+    def parameter_count(self) -> int:
+        """Free parameters, the heating reference left out (it is the record's largest current, not fitted)."""
+        return len(SCALARS) - 1 + 2 * self.wire_operators + self.output_operators
+
+
+def state_size(wire_operators: int, output_operators: int) -> int:
+    """Length of the state vector: theta_a, theta_b, the wires' plays, the output plays, the last output."""
+    return 3 + 2 * wire_operators + output_operators
+
+
+@numba.njit(cache=True, nogil=True)
+def _sigma(value: float) -> float:
+    return 0.5 * (1.0 + math.tanh(value))
+
+
+@numba.njit(cache=True, nogil=True)
+def _play(state: float, value: float, threshold: float) -> float:
+    if value - threshold > state:
+        return value - threshold
+    if value + threshold < state:
+        return value + threshold
+    return state
+
+
+@numba.njit(cache=True, nogil=True)
+def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float) -> float:
+    """Hold `current` [A] for step_s [s] from `state` (changed in place); the output at the end."""
+    reference = p[2]
+    heating = current * current / reference
+    y_before = state[2 + 2 * n + m]
+    pull = 0.0
+    for wire in range(2):
+        drive = heating if (current > 0.0) == (wire == 0) and current != 0.0 else 0.0
+        state[wire] = drive + (state[wire] - drive) * math.exp(-step_s / p[wire])
+        sign = 1.0 if wire == 0 else -1.0
+        seen = state[wire] - sign * p[3 + wire] * y_before
+        centre, width, hysteresis = p[5 + wire], p[7 + wire], p[9 + wire]
+        fraction = 0.0
+        for j in range(n):
+            threshold = hysteresis * j / (n - 1) if n > 1 else 0.0
+            index = 2 + wire * n + j
+            state[index] = _play(state[index], seen, threshold)
+            fraction += p[15 + wire * n + j] * _sigma((state[index] - centre) / width)
+        pull += sign * p[11 + wire] * fraction
+    y = p[13]
+    for k in range(m):
+        threshold = p[14] * k / (m - 1) if m > 1 else 0.0
+        index = 2 + 2 * n + k
+        state[index] = _play(state[index], pull, threshold)
+        y += p[15 + 2 * n + k] * state[index]
+    state[2 + 2 * n + m] = y
+    return y
+
+
+@numba.njit(cache=True, nogil=True)
+def _rest(p: np.ndarray, n: int, m: int, state: np.ndarray) -> None:
+    """The state of a stage long at zero current: cold wires, plays at what they see, the output settled."""
+    state[:] = 0.0
+    y = 0.0
+    for _ in range(200):  # the coupling makes rest a fixed point of the output
+        state[2 + 2 * n + m] = y
+        pull = 0.0
+        for wire in range(2):
+            sign = 1.0 if wire == 0 else -1.0
+            seen = -sign * p[3 + wire] * y
+            fraction = 0.0
+            for j in range(n):
+                state[2 + wire * n + j] = seen
+                fraction += p[15 + wire * n + j] * _sigma((seen - p[5 + wire]) / p[7 + wire])
+            pull += sign * p[11 + wire] * fraction
+        y_new = p[13]
+        for k in range(m):
+            state[2 + 2 * n + k] = pull
+            y_new += p[15 + 2 * n + k] * pull
+        if abs(y_new - y) <= 1e-15 * (1.0 + abs(y)):
+            y = y_new
+            break
+        y = 0.5 * (y + y_new)  # damped: a strong coupling would make the plain iteration oscillate
+    state[2 + 2 * n + m] = y
+
+
+@numba.njit(cache=True, nogil=True)
+def _run(t: np.ndarray, u: np.ndarray, p: np.ndarray, n: int, m: int, state: np.ndarray, held: float,
+         first_step_s: float, out: np.ndarray) -> None:
+    """Outputs at each sample of a record (see the module's sampling rule): `held` is the current applied
+    before the first sample, for first_step_s (0: the state is at the first sample already)."""
+    if first_step_s > 0.0:
+        out[0] = _advance(state, p, n, m, held, first_step_s)
+    else:
+        out[0] = state[2 + 2 * n + m]
+    for k in range(1, t.size):
+        out[k] = _advance(state, p, n, m, u[k - 1], t[k] - t[k - 1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float, step_s: float,
+                 low: float, high: float, trial: np.ndarray) -> float:
+    """The current in [low, high] [A] that, held for step_s, brings the output closest to target: the output
+    at the end of the step rises with the current over the whole range (u < 0 heats wire b less as u rises,
+    u > 0 heats wire a more), so bisection finds it; the range's end when the target is out of reach."""
+    trial[:] = state
+    if _advance(trial, p, n, m, high, step_s) <= target:
+        return high
+    trial[:] = state
+    if _advance(trial, p, n, m, low, step_s) >= target:
+        return low
+    for _ in range(INVERSE_ITERATIONS):
+        middle = 0.5 * (low + high)
+        if middle == low or middle == high:
+            break
+        trial[:] = state
+        if _advance(trial, p, n, m, middle, step_s) < target:
+            low = middle
+        else:
+            high = middle
+    trial[:] = state
+    below = abs(_advance(trial, p, n, m, low, step_s) - target)
+    trial[:] = state
+    above = abs(_advance(trial, p, n, m, high, step_s) - target)
+    return low if below <= above else high
+
+
+@dataclass(frozen=True)
+class TwoWireState:
+    """Where a record left the model: its last sample's time [s], the current applied from then [A], and the
+    state vector (theta_a, theta_b [A], the plays, the last output [output unit])."""
+
+    time_s: float
+    current_a: float
+    values: tuple[float, ...]
+
+    def to_dict(self) -> dict[str, object]:
+        """Plain values for YAML."""
+        return {"time_s": self.time_s, "current_a": self.current_a, "values": [float(v) for v in self.values]}
+
+
+@dataclass(frozen=True)
+class TwoWireModel:
+    """A two-wire model: parameters, output unit, the state a record left (None: not known) and metadata."""
+
+    parameters: TwoWireParameters
+    output_unit: str = "m"
+    state: TwoWireState | None = None
+    metadata: Mapping[str, object] = field(default_factory=dict, compare=False)
+
+    kind = KIND
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.parameters, TwoWireParameters):
+            raise InputError(f"parameters must be TwoWireParameters, got {type(self.parameters).__name__}")
+        if not isinstance(self.output_unit, str) or not self.output_unit.strip():
+            raise InputError(f"output_unit must be a non-empty string, got {self.output_unit!r}")
+        if self.state is not None and len(self.state.values) != self.state_size:
+            raise InputError(f"state holds {len(self.state.values)} values; the model has {self.state_size}")
+
+    @property
+    def state_size(self) -> int:
+        """Length of the state vector."""
+        return state_size(self.parameters.wire_operators, self.parameters.output_operators)
+
+    @property
+    def parameter_count(self) -> int:
+        """Free parameters (for an information criterion)."""
+        return self.parameters.parameter_count
+
+    def without_state(self) -> TwoWireModel:
+        """The same model with no carried state."""
+        return replace(self, state=None)
+
+    def rest_state(self) -> np.ndarray:
+        """The state vector of a stage long at zero current."""
+        params = self.parameters
+        state = np.empty(self.state_size)
+        _rest(params.as_array(), params.wire_operators, params.output_operators, state)
+        return state
+
+    # --- forward -------------------------------------------------------------------------------
+
+    def run(self, t: np.ndarray, u: np.ndarray, state: TwoWireState | None = None
+            ) -> tuple[np.ndarray, TwoWireState]:
+        """(output at each sample [output unit], the state at the last sample): from a stage long at rest
+        (zero current up to the first sample), or from `state` (what an earlier record left: its current held
+        until this record's first sample)."""
+        t, u = _record(t, u)
+        params = self.parameters
+        vector = params.as_array()
+        if state is None:
+            values, held, first = self.rest_state(), 0.0, 0.0
+        else:
+            values, held = np.array(state.values, dtype=float), state.current_a
+            first = float(t[0] - state.time_s)
+            if first < 0.0:
+                raise InputError(f"the record starts at {t[0]:g} s, before the carried state ({state.time_s:g} s)")
+        out = np.empty(t.size)
+        _run(t, u, vector, params.wire_operators, params.output_operators, values, held, first, out)
+        return out, TwoWireState(float(t[-1]), float(u[-1]), tuple(values.tolist()))
+
+    def predict(self, t: np.ndarray, u: np.ndarray, state: TwoWireState | None = None) -> np.ndarray:
+        """Output [output unit] for a record (t [s] increasing, u [A]); see run."""
+        return self.run(t, u, state)[0]
+
+    def stream(self, state: TwoWireState | None = None, max_current_a: float = 5.0) -> TwoWireStream:
+        """A sample-at-a-time forward and exact inverse, from rest or from state."""
+        return TwoWireStream(self, state, max_current_a)
+
+    # --- YAML ----------------------------------------------------------------------------------
+
+    def to_dict(self) -> dict[str, object]:
+        """The YAML document as plain values."""
+        document: dict[str, object] = {"schema_version": SCHEMA_VERSION, "kind": KIND, "output_unit": self.output_unit,
+                                       "parameters": self.parameters.to_dict()}
+        if self.state is not None:
+            document["state"] = self.state.to_dict()
+        if self.metadata:
+            document["metadata"] = dict(self.metadata)
+        return document
+
+    def to_yaml_text(self) -> str:
+        """The model file's text."""
+        return HEADER + yaml.safe_dump(plain_values(self.to_dict()), sort_keys=False)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the model file atomically."""
+        atomic_write_text(path, self.to_yaml_text())
+
+    @classmethod
+    def from_dict(cls, document: object) -> TwoWireModel:
+        """The model from a parsed YAML document (kind two_wire); InputError naming the first bad key."""
+        if not isinstance(document, dict):
+            raise InputError("the model: expected a mapping")
+        unknown = [str(key) for key in document if key not in TOP_KEYS]
+        if unknown:
+            raise InputError(f"unknown key {unknown[0]!r} in the model (known: {', '.join(TOP_KEYS)})")
+        if document.get("schema_version", SCHEMA_VERSION) != SCHEMA_VERSION:
+            raise InputError(f"two-wire schema_version {document.get('schema_version')!r} is not supported")
+        if document.get("kind") != KIND:
+            raise InputError(f"model kind {document.get('kind')!r} is not {KIND!r}")
+        metadata = document.get("metadata") or {}
+        if not isinstance(metadata, dict):
+            raise InputError("metadata must be a mapping")
+        model = cls(TwoWireParameters.from_dict(document.get("parameters")), document.get("output_unit", "m"),
+                    None, metadata)
+        return replace(model, state=_state(document["state"])) if document.get("state") is not None else model
+
+
+class TwoWireStream:
+    """The model one sample at a time: `step` follows an applied current, `command_for` is the exact inverse
+    (the current that, held over the next period, brings the output to a target) and commits it."""
+
+    def __init__(self, model: TwoWireModel, state: TwoWireState | None = None, max_current_a: float = 5.0) -> None:
+        if not max_current_a > 0.0:
+            raise InputError(f"max_current_a must be > 0, got {max_current_a!r}")
+        self.model = model
+        self.max_current_a = float(max_current_a)
+        params = model.parameters
+        self._p = params.as_array()
+        self._n, self._m = params.wire_operators, params.output_operators
+        self._state = model.rest_state() if state is None else np.array(state.values, dtype=float)
+        self._trial = np.empty_like(self._state)
+
+    @property
+    def output(self) -> float:
+        """The model's output now [output unit]."""
+        return float(self._state[-1])
+
+    @property
+    def temperatures(self) -> tuple[float, float]:
+        """The two wires' temperatures [A of heating]."""
+        return float(self._state[0]), float(self._state[1])
+
+    def step(self, current_a: float, step_s: float) -> float:
+        """Hold current_a [A] for step_s [s]; the output at the end [output unit]."""
+        return float(_advance(self._state, self._p, self._n, self._m, float(current_a), float(step_s)))
+
+    def command_for(self, target: float, step_s: float) -> float:
+        """The current [A] within +-max_current_a that, held for step_s [s], brings the output nearest target
+        [output unit]; the stream then holds it (its state moves to the end of the step)."""
+        current = _command_for(self._state, self._p, self._n, self._m, float(target), float(step_s),
+                               -self.max_current_a, self.max_current_a, self._trial)
+        self.step(current, step_s)
+        return current
+
+
+def _finite(value: object, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(float_or_inf(value)):
+        raise InputError(f"two-wire {name} must be a finite number, got {shown_number(value)}")
+    return float(value)
+
+
+def _record(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from sma_stage.model.identified import _record as checked
+
+    return checked(t, u)
+
+
+def _state(entry: object) -> TwoWireState:
+    if not isinstance(entry, dict):
+        raise InputError("two-wire state must be a mapping")
+    unknown = [str(key) for key in entry if key not in STATE_KEYS]
+    if unknown:
+        raise InputError(f"unknown key {unknown[0]!r} in the two-wire state (known: {', '.join(STATE_KEYS)})")
+    values = entry.get("values")
+    if not isinstance(values, list):
+        raise InputError("two-wire state.values must be a list")
+    return TwoWireState(_finite(entry.get("time_s"), "state.time_s"), _finite(entry.get("current_a"), "state.current_a"),
+                        tuple(_finite(value, "state.values") for value in values))
