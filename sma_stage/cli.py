@@ -55,6 +55,16 @@ def round_count(text: str) -> int:
     return int(text)
 
 
+def family_list(text: str) -> tuple[str, ...]:
+    """Comma-separated model families (argparse type)."""
+    from sma_stage.identify.families import check_families
+
+    try:
+        return check_families(text.split(","))
+    except InputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 class OneLineErrors(argparse.ArgumentParser):
     """An argument parser whose errors are one line on standard error (no usage block), exit status 2."""
 
@@ -81,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     diagnose.add_argument("--workers", type=worker_count, default=min(os.cpu_count() or 1, 64),
                           help="processes fitting a round's candidates at once (default: one per CPU; the "
                                "result is the same for any count)")
+    diagnose.add_argument("--families", type=family_list, default=("gpi", "two_wire"),
+                          help="model families compared, comma-separated (default gpi,two_wire): the one with the "
+                               "lowest validation error (BIC between those within 5 %%) is written")
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))
     simulate = commands.add_parser("simulate", help="run the stage simulator offline and write a CSV")
     from sma_stage.commands.simulate import add_arguments

@@ -162,3 +162,44 @@ def test_the_two_wire_model_identified_on_the_second_stage_validates(nominal_sta
     plain = fit_gpi(u, y, operators=5)
     plain_validation = error_metrics(y_valid, predict(plain, u_valid))
     assert plain_validation.rms_pct >= 2.0 * validation.rms_pct, (plain_validation, validation)
+
+
+def test_the_family_with_the_lowest_held_out_error_is_chosen_and_bic_parts_near_ties():
+    from sma_stage.identify.families import FamilyRow, choose
+    from sma_stage.identify.metrics import ErrorMetrics
+
+    def row(family: str, rms: float, bic: float, not_fitted: str = "") -> FamilyRow:
+        return FamilyRow(family, family, 10, ErrorMetrics(rms, 3 * rms, 100), ErrorMetrics(rms, 3 * rms, 100), bic,
+                         not_fitted)
+
+    assert choose([row("gpi", 2.9, -100.0), row("two_wire", 2.0, -50.0)]) == 1
+    assert choose([row("gpi", 2.04, -100.0), row("two_wire", 2.0, -50.0)]) == 0  # within 5 %: the lower BIC
+    assert choose([row("gpi", 2.9, -100.0), row("two_wire", 2.0, -50.0, "not fitted")]) == 0
+    assert choose([]) is None
+
+
+def test_an_unknown_family_is_refused_in_one_line():
+    from sma_stage.identify.families import check_families
+
+    assert check_families(["two_wire", "gpi"]) == ("gpi", "two_wire")
+    with pytest.raises(InputError, match="unknown model family 'bouc_wen'"):
+        check_families(["gpi", "bouc_wen"])
+    with pytest.raises(InputError, match="no model family given"):
+        check_families([" "])
+
+
+def test_the_pipeline_compares_the_families_and_keeps_the_gpi_beside_a_chosen_two_wire(nominal_stage):
+    """identify_recording with both families on the second stage: the two-wire model is deployed, its row
+    marked chosen, and the GPI family's model is kept for the compensator node (which runs GPI models)."""
+    from sma_stage.identify.pipeline import identify_recording
+    from sma_stage.io.series import make_series
+    from sma_stage.model.identified import IdentifiedModel
+
+    ident, valid = (make_series(*nominal_stage[name], source=name) for name in ("identification", "validation"))
+    found = identify_recording(ident, valid, families=("gpi", "two_wire"))
+    rows = {row["family"]: row for row in found.report["families"]}
+    assert rows["two_wire"]["chosen"] and not rows["gpi"]["chosen"]
+    assert rows["two_wire"]["validation"]["rms_pct"] < rows["gpi"]["validation"]["rms_pct"]
+    assert isinstance(found.model, TwoWireModel) and found.model.state is not None
+    assert isinstance(found.gpi_model, IdentifiedModel) and found.gpi_model.state is not None
+    assert found.report["identified_model"]["kind"] == "two_wire"

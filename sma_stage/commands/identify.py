@@ -10,7 +10,7 @@ from pathlib import Path
 
 from sma_stage.errors import InputError
 from sma_stage.identify.fit import predict
-from sma_stage.identify.pipeline import Identification, identify_recording
+from sma_stage.identify.pipeline import GPI_MODEL_FILE, Identification, identify_recording
 from sma_stage.identify.report import (
     markdown_summary,
     write_diagnosis_figures,
@@ -127,7 +127,7 @@ def run_diagnose(args: argparse.Namespace) -> dict:
         valid = read_data(args.validate, args) if args.validate else None
         found = identify_recording(data, valid, args.holdout, operators=args.operators,
                                    diagnose_rounds=args.rounds, output_unit=args.unit, progress=progress_line,
-                                   source=str(args.data), workers=args.workers)
+                                   source=str(args.data), workers=args.workers, families=args.families)
         if found.diagnosis is None:
             raise InputError(found.warnings[0] if found.warnings else "the diagnosis did not run")
         write_outputs(run.staging, found, "GPI fit and residual diagnosis")
@@ -139,6 +139,8 @@ def run_diagnose(args: argparse.Namespace) -> dict:
 def write_outputs(folder: Path, found: Identification, title: str) -> None:
     """model.yaml (the identified model), report.json and report.md into folder."""
     found.model.save(folder / "model.yaml")
+    if found.gpi_model is not None and found.gpi_model is not found.model:
+        found.gpi_model.save(folder / GPI_MODEL_FILE)
     write_json(folder / "report.json", found.report)
     atomic_write_text(folder / "report.md", markdown_summary(found.report, title))
 

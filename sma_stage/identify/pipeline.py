@@ -5,7 +5,7 @@ node's `~/refit`, the demo and the benchmarks all call `identify_recording`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -13,13 +13,16 @@ import numpy as np
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import Diagnosis, diagnose, one_blas_thread
-from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, predict
+from sma_stage.identify.families import FamilyRow, check_families, choose, fit_two_wire_row
+from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, information_criterion, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
+from sma_stage.model.two_wire import TwoWireModel
 
-MIN_HELD_OUT = 10  # fewest held-out samples a validation is scored on
+MIN_HELD_OUT = 10
+GPI_MODEL_FILE = "model_gpi.yaml"  # fewest held-out samples a validation is scored on
 
 Progress = Callable[[str], None] | None
 
@@ -30,18 +33,20 @@ class Identification:
     the diagnosis (None when not asked for, or when it failed: see `warnings`), the JSON report and the
     validation record with the sample its errors count from."""
 
-    model: IdentifiedModel
+    model: IdentifiedModel | TwoWireModel
     fit: FitResult
     diagnosis: Diagnosis | None
     report: dict
     warnings: list[str]
     validation: Series | None
     scored_from: int
+    gpi_model: IdentifiedModel | None = None  # the GPI family's model, when another family's is `model`
 
 
 def identify_recording(record: Series, validation: Series | None = None, holdout_fraction: float | None = None,
                        operators: int | None = None, diagnose_rounds: int = 0, output_unit: str = "m",
-                       progress: Progress = None, source: str = "", workers: int = 1) -> Identification:
+                       progress: Progress = None, source: str = "", workers: int = 1,
+                       families: Sequence[str] = ("gpi",)) -> Identification:
     """Identify the model of a record (t [s], input [A], output [output_unit]).
 
     Validation: a separate record (`validation`, run from an idle stage), or the held-out tail of this one
@@ -50,6 +55,10 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     the model deployed is the GPI with every effect it added; should the diagnosis fail, the plain fit is
     deployed and `warnings` says why in one line. The model's state is where it leaves the record, run from
     the start the diagnosis found for it (from rest without a diagnosis). workers: diagnose's.
+
+    families (sma_stage.identify.families.FAMILIES): with validation data and more than the GPI named, each
+    family is fitted on the same record and the one chosen by held-out error and BIC is deployed; the report's
+    "families" table says what each gave.
     """
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
@@ -73,13 +82,57 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     start = found.starts["identification"].start if found is not None else Start("rest")
     _, end_state = model.run(continued.t, continued.input, model.start_state(continued.t, continued.input, start))
     metadata = {"source": source or record.source, "samples": len(continued)}
-    model = replace(model, state=end_state, metadata=metadata)
+    gpi_model = replace(model, state=end_state, metadata=metadata)
+    model = gpi_model
+    families = check_families(families)
+    if errors is not None and families != ("gpi",):
+        chosen = _compare_families(families, fit, found, errors, ident, valid, scored_from, output_unit, report,
+                                   progress)
+        if chosen is not None:
+            model = replace(chosen, state=chosen.run(continued.t, continued.input)[1], metadata=metadata)
     if found is not None:
         report["diagnosis"] = found.to_dict()
     report["identified_model"] = model.without_state().to_dict()
-    report["compensation"] = compensation_notes(model)
+    report["compensation"] = compensation_notes(gpi_model)
+    if model is not gpi_model:
+        report["compensation"]["two_wire"] = (f"the compensator node runs GPI models: {GPI_MODEL_FILE} holds the "
+                                              "GPI family's model beside the two-wire one")
     report["warnings"] = list(warnings)
-    return Identification(model, fit, found, report, warnings, valid, scored_from)
+    return Identification(model, fit, found, report, warnings, valid, scored_from, gpi_model)
+
+
+def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics,
+                      ident: Series, valid: Series, scored_from: int, output_unit: str, report: dict,
+                      progress: Progress) -> TwoWireModel | None:
+    """Fit the other families and fill report["families"]; the two-wire model when it is chosen, else None."""
+    rows = []
+    if "gpi" in families:
+        rows.append(_gpi_row(fit, found, errors, ident))
+    two_wire = None
+    if "two_wire" in families:
+        if progress is not None:
+            progress("fitting the two-wire model")
+        row, two_wire = fit_two_wire_row(ident, valid, scored_from, output_unit)
+        rows.append(row)
+    chosen = choose(rows)
+    if chosen is not None:
+        rows[chosen] = replace(rows[chosen], chosen=True)
+    report["families"] = [row.to_dict() for row in rows]
+    if chosen is not None and rows[chosen].family == "two_wire":
+        return two_wire.model.without_state()
+    return None
+
+
+def _gpi_row(fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics, ident: Series) -> FamilyRow:
+    """The GPI family's row: the plain fit, or the GPI with the effects the diagnosis added."""
+    if found is None:
+        return FamilyRow("gpi", f"GPI, {fit.operators} operators", fit.parameter_count, fit.identification, errors,
+                         information_criterion(fit.cost, fit.samples, fit.parameter_count))
+    chain = found.chain
+    count = chain.last.parameter_count + sum(len(stage.parameters) for stage in chain.stages[:-1])
+    added = " + ".join(chain.effects) or "no effect"
+    return FamilyRow("gpi", f"GPI, {chain.last.operators} operators, {added}", count,
+                     error_metrics(ident.output, chain.predict(ident.t, ident.input)), found.after, chain.bic)
 
 
 def _split(record: Series, validation: Series | None, holdout_fraction: float | None

@@ -52,10 +52,27 @@ def markdown_summary(report: dict, title: str) -> str:
     lines += ["", f"Validation data: {report['validation_source']}. Fit time: {report['fit_seconds']:.2f} s."]
     if "diagnosis" in report:
         lines += diagnosis_markdown(report["diagnosis"])
+    if report.get("families"):
+        lines += families_markdown(report["families"])
     if report.get("compensation"):
         lines += ["", "## Compensation of the model written", ""]
         lines += [f"- {kind}: {how}" for kind, how in report["compensation"].items()]
     return "\n".join(lines) + "\n"
+
+
+def families_markdown(families: list[dict]) -> list[str]:
+    """The model families compared on the same record, the chosen one marked (its model is model.yaml)."""
+    lines = ["", "## Model families", "", "| family | model | parameters | identification RMS / max % | "
+             "validation RMS / max % | BIC | chosen |", "|---|---|---|---|---|---|---|"]
+    for row in families:
+        if row["not_fitted"]:
+            lines.append(f"| {row['family']} | not fitted: {row['not_fitted']} | | | | | |")
+            continue
+        ident, valid = (f"{errors['rms_pct']:.2f} / {errors['max_pct']:.1f}" if errors else "-"
+                        for errors in (row["identification"], row["validation"]))
+        lines.append(f"| {row['family']} | {row['model']} | {row['parameters']} | {ident} | {valid} | "
+                     f"{row['bic']:.0f} | {'**yes**' if row['chosen'] else ''} |")
+    return lines
 
 
 def diagnosis_markdown(diagnosis: dict) -> list[str]:

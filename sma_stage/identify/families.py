@@ -1,0 +1,78 @@
+"""Model families compared on the same identification record: the GPI (with the effects its diagnosis added)
+and the two-wire model. The choice: the lowest held-out RMS error, and among the families within PARSIMONY of
+it, the lowest BIC on the identification record (the simpler explanation when the held-out data cannot tell).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from sma_stage.errors import InputError
+from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.identify.two_wire import TwoWireFit, fit_two_wire
+from sma_stage.io.series import Series
+
+FAMILIES = ("gpi", "two_wire")
+PARSIMONY = 0.05  # families within 5 % (relative) of the best held-out RMS are told apart by BIC
+
+
+@dataclass(frozen=True)
+class FamilyRow:
+    """One family's outcome: what was fitted, its free parameters, its errors (None: not scored), its BIC on
+    the identification record, and why it was not fitted (empty when it was)."""
+
+    family: str
+    description: str
+    parameters: int = 0
+    identification: ErrorMetrics | None = None
+    validation: ErrorMetrics | None = None
+    bic: float = float("nan")
+    not_fitted: str = ""
+    chosen: bool = False
+
+    def to_dict(self) -> dict[str, object]:
+        """The report's form."""
+        return {"family": self.family, "model": self.description, "parameters": self.parameters,
+                "identification": None if self.identification is None else self.identification.to_dict(),
+                "validation": None if self.validation is None else self.validation.to_dict(),
+                "bic": self.bic, "chosen": self.chosen, "not_fitted": self.not_fitted}
+
+
+def check_families(names: Sequence[str]) -> tuple[str, ...]:
+    """The families named, in FAMILIES order; InputError for an unknown name or none."""
+    names = [name.strip() for name in names if name.strip()]
+    unknown = [name for name in names if name not in FAMILIES]
+    if unknown or not names:
+        problem = f"unknown model family {unknown[0]!r}" if unknown else "no model family given"
+        raise InputError(f"{problem} (known: {', '.join(FAMILIES)})")
+    return tuple(name for name in FAMILIES if name in names)
+
+
+def fit_two_wire_row(ident: Series, record: Series | None, scored_from: int, output_unit: str
+                     ) -> tuple[FamilyRow, TwoWireFit | None]:
+    """The two-wire model fitted on the identification record and scored on the validation record (`record`,
+    from its sample scored_from: a separate record run from rest, or the whole record whose tail is held out)."""
+    try:
+        found = fit_two_wire(ident.t, ident.input, ident.output, output_unit=output_unit)
+    except InputError as error:
+        return FamilyRow("two_wire", "two-wire", not_fitted=str(error)), None
+    validation = None
+    if record is not None and np.ptp(record.output[scored_from:]) > 0.0:
+        predicted = found.model.without_state().predict(record.t, record.input)
+        validation = error_metrics(record.output[scored_from:], predicted[scored_from:])
+    params = found.model.parameters
+    description = f"two-wire, {params.wire_operators} operators per wire, {params.output_operators} output operators"
+    return FamilyRow("two_wire", description, found.parameter_count, found.errors, validation, found.bic), found
+
+
+def choose(rows: Sequence[FamilyRow]) -> int | None:
+    """The index of the chosen row among those fitted and scored (None when none is)."""
+    scored = [index for index, row in enumerate(rows) if row.validation is not None and not row.not_fitted]
+    if not scored:
+        return None
+    best = min(rows[index].validation.rms_pct for index in scored)
+    close = [index for index in scored if rows[index].validation.rms_pct <= best * (1.0 + PARSIMONY)]
+    return min(close, key=lambda index: rows[index].bic)
