@@ -1177,3 +1177,36 @@ def test_identification_diagnostics_report_a_failed_recording(ros, tmp_path):
     status = identification.diagnostic_status()
     assert status.level == DiagnosticStatus.ERROR and status.message.startswith("recording stopped")
     identification.recorder.failure = None
+
+
+def test_closing_a_worker_service_while_a_call_unwinds_raises_nothing_in_its_thread(ros, monkeypatch):
+    """bench_shutdown.py, identification mid_refit SIGINT, 1 of 30: the cancelled call's thread woke the helper
+    node after close() had destroyed it ("Exception in thread ..._refit_worker-call" and a traceback)."""
+    from std_srvs.srv import Trigger
+
+    from sma_stage.identify.cancel import check_cancelled
+    from sma_stage.nodes._common import WorkerService
+
+    raised: list[BaseException] = []
+    monkeypatch.setattr(threading, "excepthook", lambda hook: raised.append(hook.exc_value))
+    started = threading.Event()
+
+    def slow(request, response):
+        started.set()
+        while True:
+            try:
+                check_cancelled()
+            except BaseException:
+                time.sleep(0.3)  # a cancelled fit that takes a moment to unwind
+                raise
+            time.sleep(0.01)
+
+    owner = ros.probe("worker_owner")
+    service = WorkerService(owner, Trigger, "slow", slow)
+    client = ros.probe("worker_client").create_client(Trigger, "/worker_owner/slow")
+    assert client.wait_for_service(timeout_sec=10.0)
+    client.call_async(Trigger.Request())
+    wait_until(started.is_set, 10.0, "the call to start")
+    service.close()
+    time.sleep(0.5)
+    assert not raised, raised

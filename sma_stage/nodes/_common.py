@@ -193,6 +193,9 @@ class WorkerService:
         self._executor.add_node(self._node)
         self._thread: threading.Thread | None = threading.Thread(target=self._spin, name=f"{name}-service",
                                                                  daemon=True)
+        self._calls: list[threading.Thread] = []
+        self._wake_lock = threading.Lock()  # a call ending as close() destroys the node must not wake it then
+        self._closed = False
         self._thread.start()
 
     async def _serve(self, request: object, response: object) -> object:
@@ -207,9 +210,13 @@ class WorkerService:
                 outcome["error"] = error
             finally:
                 done.set()
-                self._wake.trigger()
+                with self._wake_lock:
+                    if not self._closed:
+                        self._wake.trigger()
 
-        threading.Thread(target=work, name=f"{self._node.get_name()}-call", daemon=True).start()
+        call = threading.Thread(target=work, name=f"{self._node.get_name()}-call", daemon=True)
+        self._calls = [*(running for running in self._calls if running.is_alive()), call]
+        call.start()
         while not done.is_set():
             await _YieldToExecutor()
         if "error" in outcome:
@@ -231,9 +238,13 @@ class WorkerService:
         if self._thread is None:
             return
         self.cancel.set()
+        for call in self._calls:
+            call.join(timeout=timeout_s)
         self._executor.shutdown(timeout_sec=timeout_s)
         self._thread.join(timeout=timeout_s)
         self._thread = None
+        with self._wake_lock:
+            self._closed = True
         self._node.destroy_node()
 
 
