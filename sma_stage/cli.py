@@ -95,6 +95,11 @@ def build_parser() -> argparse.ArgumentParser:
                           help="model families compared, comma-separated (default gpi,two_wire): the one with the "
                                "lowest validation error (BIC between those within 5 %%) is written")
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))
+    excitation = commands.add_parser("excitation", help="write an identification current signal (t,input CSV)")
+    from sma_stage.commands.excitation import add_arguments as excitation_arguments
+
+    excitation_arguments(excitation)
+    excitation.set_defaults(handler=run_excitation)
     simulate = commands.add_parser("simulate", help="run the stage simulator offline and write a CSV")
     from sma_stage.commands.simulate import add_arguments
 
@@ -138,6 +143,17 @@ def run_paper(args: argparse.Namespace) -> dict:
     report = evaluate_paper(args.out, args.operators)
     if not args.json:
         print((args.out / "paper_summary.md").read_text(encoding="utf-8"))
+    return report
+
+
+def run_excitation(args: argparse.Namespace) -> dict:
+    """gpi_tool excitation."""
+    from sma_stage.commands.excitation import run_excitation as excitation_command
+
+    report = excitation_command(args)
+    if not args.json:
+        print(f"wrote {report['samples']} samples of the {report['kind']} excitation to {report['file']}",
+              file=sys.stderr)
     return report
 
 

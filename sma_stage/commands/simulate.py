@@ -13,9 +13,15 @@ from sma_stage.io.csv_io import write_csv
 from sma_stage.io.series import make_series
 from sma_stage.plant import Effects, StageConfig, simulate
 from sma_stage.plant.simulator import PROGRESS_SAMPLES
-from sma_stage.signals import IDENTIFICATION_DURATION_S, paper_identification_signal, paper_validation_signal
+from sma_stage.signals import (
+    IDENTIFICATION_DURATION_S,
+    designed_identification_signal,
+    paper_identification_signal,
+    paper_validation_signal,
+)
 
-SIGNALS = {"identification": paper_identification_signal, "validation": paper_validation_signal}
+SIGNALS = {"identification": paper_identification_signal, "validation": paper_validation_signal,
+           "designed": designed_identification_signal}
 MAX_SAMPLES = 10_000_000  # about 0.5 GB of CSV and a few minutes of simulation
 
 
@@ -77,7 +83,8 @@ def run_simulate(args: argparse.Namespace) -> dict:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The simulate subcommand's options."""
     parser.add_argument("--input", required=True, metavar="SIGNAL",
-                        help="identification | validation (the paper's signals) | a CSV file with t,input")
+                        help="identification | validation (the paper's signals) | designed (gpi_tool excitation designed) | "
+                             "a CSV file with t,input")
     parser.add_argument("--duration", type=float, default=IDENTIFICATION_DURATION_S, help="seconds (named signals)")
     parser.add_argument("--rate-hz", type=float, default=10.0, help="sample rate (named signals)")
     parser.add_argument("--effect", action="append", metavar="NAME=VALUE",
