@@ -1210,3 +1210,28 @@ def test_closing_a_worker_service_while_a_call_unwinds_raises_nothing_in_its_thr
     service.close()
     time.sleep(0.5)
     assert not raised, raised
+
+
+def test_excite_drives_the_designed_signal_when_asked(ros):
+    """excite_signal designed: the first commands follow signals.designed_identification_signal; a value the node
+    does not know is refused by ~/excite in one line."""
+    from std_msgs.msg import Float64
+    from std_srvs.srv import Trigger
+
+    from sma_stage.signals import designed_identification_signal
+
+    node = identification_node(ros, excite_signal="designed", excite_amplitude_start=3.0, excite_duration=1000.0,
+                               excite_time_scale=100.0, excite_rate_hz=50.0, pause_compensator=False)
+    commands: list[float] = []
+    probe = ros.probe("designed_probe")
+    probe.create_subscription(Float64, "current_cmd", lambda message: commands.append(message.data), 100)
+    answer = ros.call(probe, Trigger, "/identification/excite")
+    assert answer.success and "designed signal up to 3 A" in answer.message
+    wait_until(lambda: len(commands) > 50, 10.0, "excitation commands")
+    node.stop_excitation()
+    expected = designed_identification_signal(np.arange(0.0, 1000.0, 0.1), 3.0, 1000.0)
+    assert max(abs(value) for value in commands) <= 3.0 + 1e-12
+    assert all(np.min(np.abs(expected - value)) < 0.05 for value in commands)
+    node.set_parameters([Parameter("excite_signal", value="square")])
+    refused = ros.call(probe, Trigger, "/identification/excite")
+    assert not refused.success and refused.message.startswith("excite_signal must be one of paper, designed")

@@ -67,8 +67,9 @@ from sma_stage.nodes._common import (
     quiet_on_shutdown,
     run_node,
 )
-from sma_stage.signals import paper_identification_signal
+from sma_stage.signals import designed_identification_signal, paper_identification_signal
 
+EXCITATIONS = ("paper", "designed")
 STORAGES = ("sqlite3", "mcap")
 DIAGNOSTICS_PERIOD_S = 1.0
 
@@ -94,7 +95,11 @@ IDENTIFICATION_PARAMS = [
     Param("record_bag", "", "rosbag2 directory to record input_topic and joint_states into; empty: none"),
     Param("bag_storage", "sqlite3", f"rosbag2 storage: {' or '.join(STORAGES)}"),
     Param("bag_overwrite", False, "replace an existing record_bag directory (when the bag is finished)"),
-    Param("excite_amplitude_start", 5.0, "identification signal amplitude at its start [A]", 0.0, 20.0),
+    Param("excite_signal", "paper", "identification signal: paper (the decaying sine) or designed (each wire's "
+          "excursions to many peaks and reversal levels with holds, up to excite_amplitude_start; see gpi_tool "
+          "excitation)"),
+    Param("excite_amplitude_start", 5.0, "identification signal amplitude at its start [A] (designed: its "
+          "largest current)", 0.0, 20.0),
     Param("excite_amplitude_end", 3.6, "identification signal amplitude at its end [A]", 0.0, 20.0),
     Param("excite_period", 250.0, "identification signal period [s of signal time]", 0.001, 1e6),
     Param("excite_duration", 1000.0, "identification signal length [s of signal time]", 0.001, 1e7),
@@ -465,6 +470,11 @@ class IdentificationNode(Node):
             response.message = ("no time yet: use_sim_time is true and no /clock message has come (is the stage "
                                 "running with use_sim_time?); the signal would start part-way through")
             return response
+        if self.values["excite_signal"] not in EXCITATIONS:
+            response.success = False
+            response.message = (f"excite_signal must be one of {', '.join(EXCITATIONS)}, got "
+                                f"{self.values['excite_signal']!r}")
+            return response
         if self.values["clear_on_excite"]:
             self.on_clear(request, Trigger.Response())
         with self._lock:
@@ -475,9 +485,13 @@ class IdentificationNode(Node):
                                               quiet_on_shutdown(self, self.on_excite_tick))
         self.on_excite_tick()
         response.success = True
-        response.message = (f"exciting: {self.values['excite_amplitude_start']:g} A falling to "
-                            f"{self.values['excite_amplitude_end']:g} A, period {self.values['excite_period']:g} s, "
-                            f"{self.values['excite_duration']:g} s of signal time")
+        if self.values["excite_signal"] == "designed":
+            response.message = (f"exciting: the designed signal up to {self.values['excite_amplitude_start']:g} A, "
+                                f"{self.values['excite_duration']:g} s of signal time")
+        else:
+            response.message = (f"exciting: {self.values['excite_amplitude_start']:g} A falling to "
+                                f"{self.values['excite_amplitude_end']:g} A, period {self.values['excite_period']:g} s, "
+                                f"{self.values['excite_duration']:g} s of signal time")
         self.get_logger().info(response.message)
         return response
 
@@ -500,9 +514,12 @@ class IdentificationNode(Node):
             self.get_logger().info("excitation finished: ~/refit can fit it now"
                                    + (" (buffer frozen until ~/clear or ~/excite)" if frozen else ""))
             return
-        value = paper_identification_signal(t, float(self.values["excite_amplitude_start"]),
-                                            float(self.values["excite_amplitude_end"]),
-                                            float(self.values["excite_period"]), duration)
+        if self.values["excite_signal"] == "designed":
+            value = designed_identification_signal(t, float(self.values["excite_amplitude_start"]), duration)
+        else:
+            value = paper_identification_signal(t, float(self.values["excite_amplitude_start"]),
+                                                float(self.values["excite_amplitude_end"]),
+                                                float(self.values["excite_period"]), duration)
         self.command_pub.publish(Float64(data=float(value)))
 
     def stop_excitation(self) -> None:
