@@ -344,3 +344,19 @@ def test_scored_from_counts_the_validation_errors_from_that_sample():
     with pytest.raises(InputError) as excinfo:
         diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), scored_from=valid.t.size - 2)
     assert "scored_from" in str(excinfo.value)
+
+
+def test_a_rate_search_step_that_overflows_the_shape_costs_the_whole_output_without_a_warning():
+    """gpi_tool diagnose printed numpy's "invalid value encountered in matmul" when the rate search stepped to
+    densities that overflow; such a step now predicts nothing (a10 = 0), a finite cost the search moves away from."""
+    import warnings
+
+    from sma_stage.identify.effects.rate import _rate_projection
+
+    u = np.linspace(-5.0, 5.0, 101)
+    y = np.tanh(u[1:])
+    values = np.array([1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.1, 1.0, -800.0])  # exp(800 r) overflows
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a10, cost, residual = _rate_projection(values, 1.0, u, np.gradient(u), y, 10, "multiplicative")
+    assert a10 == 0.0 and cost == pytest.approx(float(y @ y)) and np.all(np.isfinite(residual))

@@ -5,6 +5,7 @@ operator, the first too). The weights keep their nominal p(a9 i).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -145,9 +146,11 @@ def _rate_projection(values: np.ndarray, gain: float, u: np.ndarray, rate: np.nd
     theta[9] = 1.0
     multiplied, shifted = (gain, 0.0) if form == "multiplicative" else (0.0, gain)
     shape = rate_forward(u, rate, theta, operators, multiplied, None, shifted)[0][1:]
-    norm = float(shape @ shape)
-    a10 = max(float(shape @ y) / norm, 0.0) if norm > 0.0 else 0.0
-    residual = a10 * shape - y
+    with np.errstate(over="ignore", invalid="ignore"):  # a search step can make the shape overflow
+        norm, projection = float(shape @ shape), float(shape @ y)
+    usable = norm > 0.0 and math.isfinite(norm) and math.isfinite(projection)
+    a10 = max(projection / norm, 0.0) if usable else 0.0
+    residual = a10 * shape - y if a10 > 0.0 else -y  # an unusable shape predicts nothing (0 * inf is nan)
     return a10, float(residual @ residual), residual / max(float(np.ptp(y)), np.finfo(float).tiny)
 
 
