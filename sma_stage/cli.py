@@ -91,9 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
     diagnose.add_argument("--workers", type=worker_count, default=min(os.cpu_count() or 1, 64),
                           help="processes fitting a round's candidates at once (default: one per CPU; the "
                                "result is the same for any count)")
-    diagnose.add_argument("--families", type=family_list, default=("gpi", "two_wire"),
-                          help="model families compared, comma-separated (default gpi,two_wire): the one with the "
-                               "lowest validation error (BIC between those within 5 %%) is written")
+    diagnose.add_argument("--families", type=family_list, default=("gpi",),
+                          help="model families compared, comma-separated: gpi (the default, what ~/refit fits and "
+                               "the compensator node runs), two_wire; the one with the lowest validation error (BIC "
+                               "between those within 5 %%) is written as model.yaml")
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))
     excitation = commands.add_parser("excitation", help="write an identification current signal (t,input CSV)")
     from sma_stage.commands.excitation import add_arguments as excitation_arguments

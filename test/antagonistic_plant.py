@@ -19,7 +19,8 @@ Two NiTi wires work against each other through a lever; a relay sends the curren
 - the sensor: position = LEVER * w, with Gaussian noise NOISE_PCT % of the recorded span.
 
 `python test/antagonistic_plant.py [--variants nominal,thin_wires,...]` prints `gpi_tool diagnose`'s family table
-for the paper's identification and validation signals (1000 s each at 0.2 s).
+for the paper's identification and validation signals (1000 s each at 0.2 s); `--alternatives` the two-wire
+model's alternatives (shapes, excitation).
 """
 
 from __future__ import annotations
@@ -251,8 +252,14 @@ def main() -> None:
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument("--alternatives", action="store_true",
+                        help="the two-wire model's alternatives instead: shared or per-wire shapes, identified on "
+                             "the paper's or the designed excitation")
     args = parser.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    if args.alternatives:
+        alternatives(args.variants.split(","), args.seed)
+        return
     from sma_stage.cli import main as gpi_tool
 
     print("| variant | span [mm] | model | identification RMS % | validation RMS % | validation max % | |")
@@ -273,7 +280,7 @@ def main() -> None:
             with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
                 gpi_tool(["diagnose", str(paths["identification"]), "--validate", str(paths["validation"]),
                           "--rounds", str(args.rounds), "--workers", "2", "--out", str(Path(folder) / "out"),
-                          "--json"])
+                          "--families", "gpi,two_wire", "--json"])
             report = json.loads(out.getvalue())
             seconds = time.perf_counter() - started
         span = 1e3 * float(np.ptp(made["identification"][2]))
@@ -283,6 +290,35 @@ def main() -> None:
                   f"{valid['rms_pct']:.2f} | {valid['max_pct']:.1f} | {'chosen' if row['chosen'] else ''} |",
                   flush=True)
         print(f"| {name} | | (diagnose, both families) | | | | {seconds:.0f} s |", flush=True)
+
+
+def alternatives(variants: list[str], seed: int) -> None:
+    """The two-wire model identified with shared or per-wire transformation shapes, on the paper's identification
+    signal or the designed excitation, validated on the paper's validation signal and on a second designed record
+    (another draw); a table row each."""
+    from sma_stage.identify.metrics import error_metrics
+    from sma_stage.identify.two_wire import fit_two_wire
+    from sma_stage.signals import designed_identification_signal
+
+    print("| variant | identified on | shapes | parameters | BIC | identification RMS % | paper validation RMS / "
+          "max % | designed validation RMS / max % | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in variants:
+        stage = VARIANTS[name]
+        made = records(stage, seed)
+        t = made["identification"][0]
+        designed = designed_identification_signal(t)
+        other = designed_identification_signal(t, seed=7)
+        identified_on = {"paper": made["identification"], "designed": (t, designed, simulate(designed, stage, seed + 5))}
+        second = (t, other, simulate(other, stage, seed + 9))
+        for record, (t_i, u_i, y_i) in identified_on.items():
+            for shapes in ("shared", "per_wire"):
+                found = fit_two_wire(t_i, u_i, y_i, shapes=shapes)
+                model = found.model.without_state()
+                scores = [error_metrics(y, model.predict(t_v, u_v)) for t_v, u_v, y in (made["validation"], second)]
+                print(f"| {name} | {record} | {shapes} | {found.parameter_count} | {found.bic:.0f} | "
+                      f"{found.errors.rms_pct:.2f} | {scores[0].rms_pct:.2f} / {scores[0].max_pct:.1f} | "
+                      f"{scores[1].rms_pct:.2f} / {scores[1].max_pct:.1f} | {found.seconds:.0f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -58,7 +58,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
 
     families (sma_stage.identify.families.FAMILIES): with validation data and more than the GPI named, each
     family is fitted on the same record and the one chosen by held-out error and BIC is deployed; the report's
-    "families" table says what each gave.
+    "families" table says what each gave. The default, the GPI alone, is what the compensator node runs.
     """
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
