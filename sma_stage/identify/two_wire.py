@@ -4,8 +4,8 @@ the record, the best polished on all of it. Plain arrays in, a result object out
 
 `shapes`: "shared" (the default) gives both wires one transformation shape (width, hysteresis width, weights),
 each wire keeping its own time constant, centre, coupling and stroke; "per_wire" frees them all. On the second
-physical stage's four variants shared shapes had the lower BIC every time and validated as well or better
-(docs/identification.md).
+physical stage's four variants shared shapes had the lower BIC in most fits and validated better in most
+(docs/identification.md, section 6, gives the counts).
 """
 
 from __future__ import annotations
