@@ -220,6 +220,8 @@ class WorkerService:
         while not done.is_set():
             await _YieldToExecutor()
         if "error" in outcome:
+            if self.cancel.is_set():  # closing: the call was cancelled, the caller gets the default answer
+                return response
             raise outcome["error"]
         return outcome["response"]
 
