@@ -269,7 +269,8 @@ def test_a_refit_killed_midway_leaves_the_old_model_file_or_the_new_one_whole(tm
                                        "use_sim_time": True}, [CONFIG_DIR / "stage.yaml"])
             identification = nodes.start("identification_node", {
                 "excite_duration": 300.0, "excite_rate_hz": 1.0, "operators": 5, "min_samples": 60,
-                "model_file": str(model_file), "use_sim_time": True, "push_timeout": 0.1},
+                "model_file": str(model_file), "use_sim_time": True, "push_timeout": 0.1,
+                "max_held_out_rms_pct": 100.0},  # 300 s records miss their held-out tail by 9-11 %: not tested here
                 [CONFIG_DIR / "identification.yaml"])
             with RosClient(domain, f"kill_test_{attempt}") as client:
                 client.wait_for_services(["identification/refit"], 60.0, nodes.check_running)
