@@ -46,7 +46,9 @@ TOP_KEYS = ("schema_version", "kind", "output_unit", "parameters", "state", "met
 STATE_KEYS = ("time_s", "current_a", "values")
 HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hysteresis in it, the output a\n"
           "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
-INVERSE_ITERATIONS = 60  # bisection halvings of the current range: 10 A / 2^60, far below any step's effect
+INVERSE_ITERATIONS = 100  # at most this many trial steps per inverse call (a few are the rule)
+OUTPUT_TOLERANCE = 1e-13  # a trial within this fraction of the strokes and offset of the target ends the search
+CURRENT_TOLERANCE = 1e-14  # a bracket narrower than this (relative) ends it
 
 
 @dataclass(frozen=True)
@@ -227,31 +229,49 @@ def _run(t: np.ndarray, u: np.ndarray, p: np.ndarray, n: int, m: int, state: np.
 
 
 @numba.njit(cache=True, nogil=True)
+def _held(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float, target: float,
+          trial: np.ndarray) -> float:
+    """How far above target the output ends when current is held for step_s from state (state unchanged)."""
+    trial[:] = state
+    return _advance(trial, p, n, m, current, step_s) - target
+
+
+@numba.njit(cache=True, nogil=True)
 def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float, step_s: float,
                  low: float, high: float, trial: np.ndarray) -> float:
     """The current in [low, high] [A] that, held for step_s, brings the output closest to target: the output
     at the end of the step rises with the current over the whole range (u < 0 heats wire b less as u rises,
-    u > 0 heats wire a more), so bisection finds it; the range's end when the target is out of reach."""
-    trial[:] = state
-    if _advance(trial, p, n, m, high, step_s) <= target:
+    u > 0 heats wire a more), so a bracketing search finds it (regula falsi, Illinois variant, bisecting when a
+    step would leave the bracket); the range's end when the target is out of reach."""
+    above_high = _held(state, p, n, m, high, step_s, target, trial)
+    if above_high <= 0.0:
         return high
-    trial[:] = state
-    if _advance(trial, p, n, m, low, step_s) >= target:
+    above_low = _held(state, p, n, m, low, step_s, target, trial)
+    if above_low >= 0.0:
         return low
+    close = OUTPUT_TOLERANCE * (abs(p[11]) + abs(p[12]) + abs(p[13]) + 1e-300)
+    side = 0
     for _ in range(INVERSE_ITERATIONS):
-        middle = 0.5 * (low + high)
-        if middle == low or middle == high:
+        if high - low <= CURRENT_TOLERANCE * (abs(low) + abs(high) + 1.0):
             break
-        trial[:] = state
-        if _advance(trial, p, n, m, middle, step_s) < target:
-            low = middle
+        trial_current = (low * above_high - high * above_low) / (above_high - above_low)
+        if not low < trial_current < high:
+            trial_current = 0.5 * (low + high)
+        above = _held(state, p, n, m, trial_current, step_s, target, trial)
+        if abs(above) <= close:
+            return trial_current
+        if above < 0.0:
+            low, above_low = trial_current, above
+            if side == -1:
+                above_high *= 0.5
+            side = -1
         else:
-            high = middle
-    trial[:] = state
-    below = abs(_advance(trial, p, n, m, low, step_s) - target)
-    trial[:] = state
-    above = abs(_advance(trial, p, n, m, high, step_s) - target)
-    return low if below <= above else high
+            high, above_high = trial_current, above
+            if side == 1:
+                above_low *= 0.5
+            side = 1
+    below = abs(_held(state, p, n, m, low, step_s, target, trial))
+    return low if below <= abs(_held(state, p, n, m, high, step_s, target, trial)) else high
 
 
 @dataclass(frozen=True)
