@@ -209,6 +209,10 @@ def test_the_pipeline_compares_the_families_and_keeps_the_gpi_beside_a_chosen_tw
     assert isinstance(found.model, TwoWireModel) and found.model.state is not None
     assert isinstance(found.gpi_model, IdentifiedModel) and found.gpi_model.state is not None
     assert found.report["identified_model"]["kind"] == "two_wire"
+    from sma_stage.identify.report import markdown_summary
+
+    summary = markdown_summary(found.report, "diagnosis")
+    assert "Model written (model.yaml): **two-wire" in summary and "| two_wire |" in summary
 
 
 def test_the_two_wire_inverse_tracks_the_second_stage_in_feedforward(nominal_stage, nominal_fit):

@@ -40,7 +40,12 @@ def write_json(path: Path, report: dict) -> None:
 def markdown_summary(report: dict, title: str) -> str:
     """A person's one-page reading of the report."""
     model = report["model"]
-    lines = [f"# {title}", "", f"GPI model, {model['operators']} operators, output in {model['output_unit']}.", "",
+    chosen = next((row for row in report.get("families") or [] if row["chosen"]), None)
+    written = [] if chosen is None or chosen["family"] == "gpi" else [
+        f"Model written (model.yaml): **{chosen['model']}**, chosen among the families below; model_gpi.yaml holds "
+        "the GPI family's model. The GPI fit:", ""]
+    lines = [f"# {title}", "", *written, f"GPI model, {model['operators']} operators, output in "
+             f"{model['output_unit']}.", "",
              "| parameter | value | standard error |", "|---|---|---|"]
     for name, value in model["parameters"].items():
         lines.append(f"| {name} | {value:.6g} | {model['standard_errors'].get(name, float('nan')):.3g} |")
