@@ -50,7 +50,7 @@ def test_the_lead_undoes_a_first_order_lag_exactly(joule_reference_a):
     setpoints = slow_setpoints(3000, dt_s)
     core = Compensator(lagged(tau_s, joule_reference_a), LIMIT_A, max_rate_a_per_s=0.0,
                        **EXACT_LEAD)
-    reach = core.inverse.input_range  # the lag's drive: the Joule heating's range in the heating reading
+    reach = core.drive.inverse.input_range  # the lag's drive: the Joule heating's range in the heating reading
     wanted = GPIInverseStream(MODEL.parameters, MODEL.operators, input_range=reach).run(setpoints)[0]
     kept = math.exp(-dt_s / tau_s)
     state, unclipped = 0.0, 0
@@ -166,10 +166,10 @@ def test_the_model_runs_on_from_the_state_it_carries():
     model = lagged(6.0)
     _, state = model.run(t, 4.0 * np.sin(2.0 * np.pi * t / 250.0))
     carried = Compensator(replace(model, state=state), LIMIT_A)
-    assert carried.thermal.seen == state.effects[0].values[0] != 0.0
-    assert np.array_equal(carried.inverse.states, np.array(state.operators)) and np.any(carried.inverse.states)
+    assert carried.drive.thermal.seen == state.effects[0].values[0] != 0.0
+    assert np.array_equal(carried.drive.inverse.states, np.array(state.operators)) and np.any(carried.drive.inverse.states)
     fresh = Compensator(model, LIMIT_A)
-    assert fresh.thermal.seen == 0.0 and not np.any(fresh.inverse.states)
+    assert fresh.drive.thermal.seen == 0.0 and not np.any(fresh.drive.inverse.states)
 
 
 @pytest.mark.parametrize("measured_m", [None, 0.0], ids=["feedforward", "loop"])
@@ -188,7 +188,7 @@ def test_the_lead_limit_bounds_the_lead_and_the_lag_then_follows_with_tau_over_t
     states = []
     for _ in range(400):
         core.command(1e-4, measured_m, dt_s)
-        states.append(core.thermal.seen)
+        states.append(core.drive.thermal.seen)
     gap = target - np.array(states)
     rate = -np.log(gap[200] / gap[100]) / (100 * dt_s)  # the gap decays as exp(-t limit / tau)
     assert rate == pytest.approx(limit / tau_s, rel=0.02)
@@ -219,7 +219,7 @@ def test_feedforward_does_not_overshoot_a_step_and_the_lag_then_follows_with_its
     currents, states = [], []
     for _ in range(400):
         currents.append(core.command(1e-4, None, dt_s))
-        states.append(core.thermal.seen)
+        states.append(core.drive.thermal.seen)
     assert np.max(currents) == pytest.approx(target, rel=1e-12)
     assert np.min(currents) == pytest.approx(target, rel=1e-12)
     gap = target - np.array(states)
@@ -322,8 +322,8 @@ def test_following_the_applied_current_keeps_the_model_where_the_stage_is():
         if k:
             state = current + (state - current) * math.exp(-dt_s / tau_s)
         forward.step(state)
-    assert following.thermal.seen == pytest.approx(state, abs=1e-12)
-    assert np.allclose(following.inverse.states, forward.states, rtol=0.0, atol=1e-15)
+    assert following.drive.thermal.seen == pytest.approx(state, abs=1e-12)
+    assert np.allclose(following.drive.inverse.states, forward.states, rtol=0.0, atol=1e-15)
     assert following.integral_m == 0.0 and following.command_a == u[-1]
 
 

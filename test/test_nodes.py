@@ -446,7 +446,7 @@ def test_compensator_refuses_a_bad_model_and_keeps_the_model(ros):
         assert not result.successful and reason in result.reason and "\n" not in result.reason, result.reason
     result = compensator.set_parameters([Parameter("inverse_method", value="newton")])[0]
     assert not result.successful and "inverse method" in result.reason
-    assert compensator.inverse.params == DEFAULT_PARAMS and not compensator.model.effects
+    assert compensator.core.drive.inverse.params == DEFAULT_PARAMS and not compensator.model.effects
     probe = CompensatorProbe(ros, compensator)
     reference = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, "exact", input_range=(-5.0, 5.0))
     probe.command_for(2e-4, reference.step(2e-4))
@@ -477,7 +477,7 @@ def test_compensator_refuses_hostile_model_yaml_from_every_source_and_keeps_the_
     result = compensator.set_parameters([Parameter("model_file", value=str(fifo))])[0]
     assert not result.successful and "is not a regular file" in result.reason
     assert time.monotonic() - started < 1.0
-    assert compensator.inverse.params == DEFAULT_PARAMS and compensator.model_source == str(path)
+    assert compensator.core.drive.inverse.params == DEFAULT_PARAMS and compensator.model_source == str(path)
     reference = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, "exact", input_range=(-5.0, 5.0))
     probe.command_for(2e-4, reference.step(2e-4))
 
@@ -505,7 +505,7 @@ def test_compensator_takes_a_whole_model_through_its_parameter_service(ros):
     request = SetParametersAtomically.Request(parameters=[Parameter("model", value=model_text(new, 8)).to_parameter_msg()])
     answer = ros.call(probe.node, SetParametersAtomically, "compensator/set_parameters_atomically", request)
     assert answer.result.successful, answer.result.reason
-    assert compensator.inverse.params == new and compensator.inverse.operators == 8
+    assert compensator.core.drive.inverse.params == new and compensator.core.drive.inverse.operators == 8
     reference = GPIInverseStream(new, 8, "exact", input_range=(-5.0, 5.0))
     for setpoint in SETPOINTS_M[:4]:
         probe.command_for(setpoint, reference.step(setpoint))
@@ -516,18 +516,18 @@ def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
     first = DEFAULT_PARAMS.replace(a10=0.25)
     first.to_yaml(path, operators=12)
     compensator = compensator_node(ros, model_file=str(path), rate_hz=2.0)
-    assert compensator.inverse.params == first and compensator.model.operators == 12
+    assert compensator.core.drive.inverse.params == first and compensator.model.operators == 12
     probe = CompensatorProbe(ros, compensator)
     for bad_text in ("kind: gpi\nparameters: [1, 2\n", "kind: gpi\noperators: 10\nparameters: {a1: 1.0}\n"):
         path.write_text(bad_text)
         answer = ros.call(probe.node, Trigger, "compensator/reload")
         assert not answer.success and str(path) in answer.message and "\n" not in answer.message
-        assert compensator.inverse.params == first
+        assert compensator.core.drive.inverse.params == first
     second = DEFAULT_PARAMS.replace(a2=0.7)
     second.to_yaml(path, operators=10)
     answer = ros.call(probe.node, Trigger, "compensator/reload")
     assert answer.success, answer.message
-    assert compensator.inverse.params == second
+    assert compensator.core.drive.inverse.params == second
     reference = GPIInverseStream(second, 10, "exact", input_range=(-5.0, 5.0))
     probe.command_for(1e-4, reference.step(1e-4))
 
@@ -537,7 +537,7 @@ def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gain
     assert compensator.core.tau_s == 0.0
     lag = Effect("thermal_lag", {"tau_s": 11.0})
     assert compensator.set_parameters([Parameter("model", value=model_text(DEFAULT_PARAMS, OPERATORS, lag))])[0].successful
-    assert compensator.core.tau_s == 11.0 and compensator.inverse.params == DEFAULT_PARAMS
+    assert compensator.core.tau_s == 11.0 and compensator.core.drive.inverse.params == DEFAULT_PARAMS
     probe = CompensatorProbe(ros, compensator)
     plain = GPIInverseStream(DEFAULT_PARAMS, OPERATORS, "exact", input_range=(-5.0, 5.0)).step(2e-4)
     probe.setpoint_pub.publish(Float64(data=2e-4))
@@ -560,8 +560,8 @@ def test_compensator_model_follows_the_current_applied_while_it_does_not_command
     for _ in range(150):  # 3 A for about 1.5 s: the stage driven by someone else
         applied_pub.publish(Float64(data=3.0))
         time.sleep(0.01)
-    wait_until(lambda: compensator.core.thermal.seen > 2.9, 5.0, "the lag's state to follow the applied 3 A")
-    assert np.any(compensator.inverse.states != 0.0) and compensator.command_a == 3.0
+    wait_until(lambda: compensator.core.drive.thermal.seen > 2.9, 5.0, "the lag's state to follow the applied 3 A")
+    assert np.any(compensator.core.drive.inverse.states != 0.0) and compensator.command_a == 3.0
     probe.setpoint_pub.publish(Float64(data=1e-4))
     wait_until(lambda: probe.latest() is not None, 5.0, "a command for the setpoint")
     followed = []
@@ -594,7 +594,7 @@ def test_compensator_pi_integrates_the_error_with_anti_windup(ros):
     wound = compensator.integral_m
     time.sleep(0.3)
     assert compensator.integral_m == wound, "the integrator must stop while the output saturates"
-    assert compensator.inverse.last_clipped == 1
+    assert compensator.core.drive.inverse.last_clipped == 1
     probe.measure(1.2e-4)
     wait_until(lambda: abs(probe.latest() - 2.0) > 1e-9, 1.0, "the command to leave saturation at once")
 
@@ -800,7 +800,7 @@ def test_identification_refuses_a_refit_on_nan_data(ros, tmp_path):
     answer = refit_answer(ros, fake.node)
     assert not answer.success and "nan" in answer.message.lower() and "output" in answer.message
     assert "\n" not in answer.message
-    assert not model_file.exists() and compensator.inverse.params == DEFAULT_PARAMS, "nothing in force changed"
+    assert not model_file.exists() and compensator.core.drive.inverse.params == DEFAULT_PARAMS, "nothing in force changed"
 
 
 DRIFT_UNFITTABLE = REPO / "test" / "data" / "refit_drift_unfittable.csv"
@@ -862,7 +862,7 @@ def test_identification_refit_keeps_the_plain_fit_when_the_diagnosis_fails(ros, 
     assert report["warnings"] == ["diagnosis failed, the plain GPI fit is kept: RuntimeError: a bug over two lines"]
     fitted = GPIParameters.from_dict(report["model"]["parameters"])
     assert report["identified_model"]["effects"] == [] and compensator.model == load_model_file(model_file)
-    assert compensator.inverse.params == fitted
+    assert compensator.core.drive.inverse.params == fitted
 
 
 def test_identification_refit_without_a_compensator_warns_in_the_report(ros, tmp_path):
@@ -1242,3 +1242,25 @@ def test_excite_drives_the_designed_signal_when_asked(ros):
     node.set_parameters([Parameter("excite_signal", value="square")])
     refused = ros.call(probe, Trigger, "/identification/excite")
     assert not refused.success and refused.message.startswith("excite_signal must be one of paper, designed")
+
+
+def test_compensator_runs_a_two_wire_model_from_its_file_or_pushed_and_keeps_it_on_a_bad_method(ros, tmp_path):
+    from test_two_wire import example_model
+
+    from sma_stage.model.two_wire import TwoWireModel
+
+    path = tmp_path / "two_wire.yaml"
+    example_model().save(path)
+    compensator = compensator_node(ros, rate_hz=5.0, model_file=str(path))
+    assert isinstance(compensator.model, TwoWireModel) and "two-wire" in compensator.describe_model()
+    probe = CompensatorProbe(ros, compensator)
+    low, high = compensator.core.drive.reach
+    probe.command_for(high + 0.1 * (high - low), 5.0)
+    probe.command_for(low - 0.1 * (high - low), -5.0)
+    probe.setpoint_pub.publish(Float64(data=0.5 * (low + high)))
+    wait_until(lambda: -5.0 < probe.latest() < 5.0, 5.0, "a current within the limit for a reachable target")
+    result = compensator.set_parameters([Parameter("inverse_method", value="analytic")])[0]
+    assert not result.successful and "exact inverse only" in result.reason and "\n" not in result.reason
+    pushed = example_model(4, 2)
+    assert compensator.set_parameters([Parameter("model", value=pushed.to_yaml_text())])[0].successful
+    assert isinstance(compensator.model, TwoWireModel) and compensator.model.parameters.wire_operators == 4

@@ -238,3 +238,34 @@ def test_the_two_wire_inverse_tracks_the_second_stage_in_feedforward(nominal_sta
     tracked = np.array(errors)[t[:-1] > 120.0]
     assert 100 * np.sqrt(np.mean(tracked**2)) / span <= 2.0
     assert 100 * np.max(np.abs(tracked)) / span <= 6.0
+
+
+def test_the_compensator_runs_a_two_wire_model_through_its_exact_inverse():
+    """With no lead limit and no rate limit, the package's compensator sends the currents that bring the model
+    to each target at the end of its hold, to 1e-9 of the span: the two-wire model goes through the same
+    control core as the GPI."""
+    from sma_stage.control.compensator import Compensator
+
+    model, (t, u) = example_model(), excitation(600)
+    targets = model.predict(t, u)
+    core = Compensator(model, 5.0, lead_limit=1e9, feedforward_lead_limit=1e9, feedforward_step_lead_limit=1e9,
+                       max_rate_a_per_s=0.0)
+    commands = []
+    for k in range(t.size - 1):
+        dt = t[k] - t[k - 1] if k else 0.0
+        commands.append(core.command(targets[k + 1], dt_s=dt, hold_s=t[k + 1] - t[k]))
+    reached = model.predict(t, np.r_[commands, 0.0])
+    assert np.max(np.abs(reached - targets)) <= 1e-9 * np.ptp(targets)
+    assert core.tau_s == 4.0 and "two-wire" in core.drive.describe()
+
+
+def test_the_compensator_saturates_towards_an_unreachable_target_and_refuses_the_analytic_inverse():
+    from sma_stage.control.compensator import Compensator
+
+    core = Compensator(example_model(), 5.0, max_rate_a_per_s=0.0)
+    low, high = core.drive.reach
+    assert core.command(high + 0.1 * (high - low), dt_s=0.2) == 5.0 and core.saturated == 1
+    assert core.drive.out_of_reach == 1
+    assert core.command(low - 0.1 * (high - low), dt_s=0.2) == -5.0 and core.saturated == -1
+    with pytest.raises(InputError, match="exact inverse only"):
+        Compensator(example_model(), 5.0, method="analytic")

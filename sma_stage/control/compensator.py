@@ -54,6 +54,11 @@ Each effect of the IdentifiedModel is stepped with the code identification fitte
   setpoint delay_s late); the PI loop sees it in the measurement.
 The model's state at the end of the identification record, when it carries one, is where the inverse,
 the lag and the drift start.
+
+A TwoWireModel is run backwards by its own exact inverse (sma_stage.control.drives.TwoWireDrive): its wires'
+temperatures are advanced with the command sent, and the current is the one that, held over the horizon a
+lead of gain g needs (-tau ln(1 - 1/g), tau the slower wire's), brings the model's output to the target;
+the same lead limits, rate limit, play and PI loop apply around it.
 """
 
 from __future__ import annotations
@@ -61,13 +66,10 @@ from __future__ import annotations
 import bisect
 import math
 
-import numpy as np
-
-from sma_stage.control.thermal import ThermalState
+from sma_stage.control.drives import AnyModel, Drive, drive_for, model_tau_s
 from sma_stage.errors import InputError, finite_number
-from sma_stage.model import GPIForwardStream, GPIInverseStream, IdentifiedModel
-from sma_stage.model.effects import Effect, EffectState, joule_heating
-from sma_stage.model.identified import ModelState
+from sma_stage.model import IdentifiedModel
+from sma_stage.model.two_wire import TwoWireModel
 
 COMPENSATION = {
     "thermal_lag": "inverted: the lead brings the lag's state to the inverse's output over each step",
@@ -80,13 +82,11 @@ COMPENSATION = {
 }
 
 
-def thermal_effect(model: IdentifiedModel) -> Effect | None:
-    """The model's thermal effect (thermal_lag or wire_thermal), which the lead undoes; None without one."""
-    return model.effect("thermal_lag") or model.effect("wire_thermal")
-
-
-def compensation_notes(model: IdentifiedModel) -> dict[str, str]:
+def compensation_notes(model: AnyModel) -> dict[str, str]:
     """How the compensator treats each of the model's effects (effect kind -> one line)."""
+    if isinstance(model, TwoWireModel):
+        return {"two_wire": "inverted exactly: the current that, held over the lead limit's horizon, brings the "
+                            "model's output to the target through both wires' temperatures"}
     return {kind: COMPENSATION[kind] for kind in model.effect_names}
 
 
@@ -112,7 +112,7 @@ def checked_gains(kp: float, ki: float) -> dict[str, float]:
     return {name: _non_negative(name, value) for name, value in {"kp": kp, "ki": ki}.items()}
 
 
-def imc_gains(model: IdentifiedModel, control_period_s: float, lead_limit: float = DEFAULT_LEAD_LIMIT
+def imc_gains(model: AnyModel, control_period_s: float, lead_limit: float = DEFAULT_LEAD_LIMIT
               ) -> dict[str, float]:
     """PI gains (kp [m/m], ki [1/s]) by IMC (lambda) tuning for what the loop sees around the compensated
     model: a first-order lag of tau_c = tau / lead_limit (tau the model's thermal lag, 0 without one) and
@@ -121,7 +121,7 @@ def imc_gains(model: IdentifiedModel, control_period_s: float, lead_limit: float
     period = _non_negative("control_period_s", control_period_s)
     if period == 0.0:
         raise InputError("control_period_s must be above 0")
-    lag_left = ThermalState(thermal_effect(model)).tau_s / max(lead_limit, 1.0)
+    lag_left = model_tau_s(model) / max(lead_limit, 1.0)
     closed_loop = LAMBDA_FRACTION * lag_left
     return {"kp": lag_left / (closed_loop + period), "ki": 1.0 / (closed_loop + period)}
 
@@ -178,9 +178,9 @@ class _SetpointMotion:
 class Compensator:
     """Setpoint [m] (and measured position [m]) in, current [A] out; see the module's docstring.
 
-    model: the identified model (output in m); max_current_a: the current limit [A]; method: the GPI
-    inverse, "exact" or "analytic"; kp [m/m] and ki [1/s]: the PI gains (used only when a measurement
-    is given).
+    model: the identified model (a GPI or a two-wire model, output in m); max_current_a: the current limit
+    [A]; method: the GPI inverse, "exact" or "analytic" (a two-wire model's is exact only); kp [m/m] and
+    ki [1/s]: the PI gains (used only when a measurement is given).
     """
 
     kp = _AtLeast()  # proportional gain [m of target per m of error]
@@ -191,7 +191,7 @@ class Compensator:
     feedforward_lead_limit = _AtLeast(1.0)  # the same without a measurement, while the setpoint moves [A/A]
     feedforward_step_lead_limit = _AtLeast(1.0)  # without a measurement, while the setpoint does not move [A/A]
 
-    def __init__(self, model: IdentifiedModel, max_current_a: float = 5.0, method: str = "exact",
+    def __init__(self, model: AnyModel, max_current_a: float = 5.0, method: str = "exact",
                  kp: float = 0.0, ki: float = 0.0, lead_limit: float = DEFAULT_LEAD_LIMIT,
                  deadband_m: float = DEFAULT_DEADBAND_M, max_rate_a_per_s: float = DEFAULT_MAX_RATE_A_PER_S,
                  feedforward_lead_limit: float = DEFAULT_FEEDFORWARD_LEAD_LIMIT,
@@ -203,72 +203,52 @@ class Compensator:
         self.feedforward_step_lead_limit = feedforward_step_lead_limit
         self.deadband_m = deadband_m
         self.max_rate_a_per_s = max_rate_a_per_s
+        self._limit, self._method = 0.0, "exact"
         self.set_model(model, max_current_a, method)
 
 
     @property
-    def model(self) -> IdentifiedModel:
+    def model(self) -> AnyModel:
         """The identified model in force."""
-        return self._model
-
-    @property
-    def inverse(self) -> GPIInverseStream:
-        """The streaming GPI inverse in force."""
-        return self._inverse
+        return self.drive.model
 
     @property
     def max_current_a(self) -> float:
         """The current limit [A]."""
         return self._limit
 
-    def set_model(self, model: IdentifiedModel, max_current_a: float | None = None, method: str | None = None) -> None:
+    def set_model(self, model: AnyModel, max_current_a: float | None = None, method: str | None = None) -> None:
         """Use another model (checked whole: InputError and nothing changed when it cannot be inverted);
         the integral and every state start again, from the model's carried state when it has one."""
-        if not isinstance(model, IdentifiedModel):
-            raise InputError(f"model must be an IdentifiedModel, got {type(model).__name__}")
+        if not isinstance(model, (IdentifiedModel, TwoWireModel)):
+            raise InputError(f"model must be an IdentifiedModel or a TwoWireModel, got {type(model).__name__}")
         if model.output_unit != "m":
             raise InputError(f"the model's output unit is '{model.output_unit}'; the setpoint is in m")
         limit = _non_negative("max_current_a", self._limit if max_current_a is None else max_current_a)
         if limit == 0.0:
             raise InputError("max_current_a must be above 0")
-        thermal = thermal_effect(model)
-        reference = thermal.parameters.get("joule_reference_a", 0.0) if thermal is not None else 0.0
-        reach = (float(joule_heating(-limit, reference)), float(joule_heating(limit, reference)))
-        state = model.state
-        inverse = GPIInverseStream(model.parameters, model.operators, self._inverse.method if method is None else method,
-                                   initial=None if state is None else np.array(state.operators), input_range=reach)
-        self._model, self._inverse, self._limit = model, inverse, limit
-        self._thermal_effect = thermal
-        self._drift = model.effect("drift")
+        method = self._method if method is None else method
+        drive_for(model, limit, method)  # checked whole before anything changes
+        self._model, self._limit, self._method = model, limit, method
         self.reset()
 
     def reset(self) -> None:
-        """Integral to 0; the lag (with the last command) and the drift from the model's carried state,
-        else an idle stage at 0 A."""
-        state = self._model.state
+        """Integral to 0; the model's states (and the last command) from its carried state, else an idle stage
+        at 0 A."""
+        self.drive: Drive = drive_for(self._model, self._limit, self._method)
         self.integral_m = 0.0
         self.target_m = 0.0
         self._played_m: float | None = None
         self._commanded = False
         self.saturated = 0
-        effect = self._thermal_effect
-        self.thermal = ThermalState(effect, self._carried_state(effect, state))
-        self.command_a = self.thermal.current(self.thermal.last_drive)
-        drift_state = self._carried_state(self._drift, state)
-        self.drift_elapsed_s = float(drift_state.values[0]) if drift_state is not None and drift_state.values else 0.0
+        self.command_a = self.drive.initial_current()
         self._hold_s = 0.0
         self._setpoint = _SetpointMotion()
 
-    def _carried_state(self, effect: Effect | None, state: ModelState | None) -> EffectState | None:
-        """The effect's carried state in the model's state, if any."""
-        if effect is None or state is None:
-            return None
-        return state.effects[self._model.effects.index(effect)]
-
     @property
     def tau_s(self) -> float:
-        """The thermal effect's (slowest) time constant [s] the lead undoes (0: none)."""
-        return self.thermal.tau_s
+        """The model's (slowest) thermal time constant [s] the lead undoes (0: none)."""
+        return self.drive.tau_s
 
     def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
                 hold_s: float | None = None) -> float:
@@ -285,20 +265,20 @@ class Compensator:
         self.target_m = setpoint
         if measured_m is not None:
             self.target_m = self._pi_target(setpoint, self._bounded(finite_number("measured_m", measured_m)), dt)
-        self.drift_elapsed_s += dt
         moving = self._setpoint.moves(setpoint, dt)
-        lag_input = self._inverse.step(self.target_m - self._drift_offset())
         limit = self._lead_limit
         if measured_m is None:
             limit = self._feedforward_lead_limit if moving else self._feedforward_step_lead_limit
-        self.command_a = self._rate_limited(self._lead(lag_input, dt, limit), dt)
+        self.drive.advance(self.command_a, dt)
+        current, self.saturated = self.drive.current_for(self.target_m, self._hold_s, limit)
+        self.command_a = self._rate_limited(current, dt)
         return self.command_a
 
     def _bounded(self, position_m: float) -> float:
         """A position [m] within the inverse's target bounds (the model's reach and ten spans beyond): a finite
         but absurd setpoint or measurement (1e308) gives the same command as one just beyond reach, and the
         loop's arithmetic cannot overflow."""
-        low, high = self._inverse.target_bounds
+        low, high = self.drive.target_bounds
         return min(high, max(low, position_m))
 
     def _rate_limited(self, current: float, dt: float) -> float:
@@ -318,26 +298,16 @@ class Compensator:
         The loop starts again (integral 0)."""
         current = finite_number("current_a", current_a)
         dt = _non_negative("dt_s", dt_s)
-        self.thermal.advance(current, dt)
-        seen = self.thermal.seen
-        forward = GPIForwardStream(self._model.parameters, self._model.operators, initial=self._inverse.states)
-        forward.step(seen)
-        self._inverse.reset(initial=forward.states, previous_input=seen)
-        self.drift_elapsed_s += dt
+        self.drive.follow_applied(current, dt)
         self.command_a = current
         self.integral_m = 0.0
         self._played_m = None
         self._commanded = False
 
-    def _drift_offset(self) -> float:
-        if self._drift is None:
-            return 0.0
-        return float(self._drift.drift_at(self.drift_elapsed_s)[0])
-
     def _pi_target(self, setpoint: float, measured: float, dt: float) -> float:
         error = setpoint - measured
         if self.saturated * error <= 0.0:
-            low, high = self._inverse.target_bounds  # beyond them the integral changes no command: a bound
+            low, high = self.drive.target_bounds  # beyond them the integral changes no command: a bound
             reach = high - low
             self.integral_m = min(reach, max(-reach, self.integral_m + self._ki * error * dt))
         target = setpoint + self._kp * error + self.integral_m
@@ -347,12 +317,3 @@ class Compensator:
         width = self._deadband_m
         self._played_m = target if played is None else min(target + width, max(target - width, played))
         return self._played_m
-
-    def _lead(self, lag_input: float, dt: float, lead_limit: float) -> float:
-        if dt > 0.0:
-            self.thermal.advance(self.command_a, dt)
-        wanted = self.thermal.lead(lag_input, self._hold_s, lead_limit)
-        low, high = self._inverse.input_range
-        clipped = min(high, max(low, wanted))
-        self.saturated = self._inverse.last_clipped or (wanted > clipped) - (wanted < clipped)
-        return self.thermal.current(clipped)

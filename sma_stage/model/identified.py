@@ -257,17 +257,22 @@ def load_model_file(path: str | os.PathLike) -> IdentifiedModel:
         raise InputError(f"model file {Path(path)}: {error}") from None
 
 
-def load_any_model_file(path: str | os.PathLike) -> IdentifiedModel | TwoWireModel:
-    """A model file of any family, by its `kind` (gpi, the default, or two_wire); problems as load_model_file."""
+def any_model_from_yaml_text(text: str) -> IdentifiedModel | TwoWireModel:
+    """A model of any family from YAML text, by its `kind` (gpi, the default, or two_wire)."""
     from sma_stage.model.two_wire import KIND as TWO_WIRE
     from sma_stage.model.two_wire import TwoWireModel
 
+    document = parse_yaml(text)
+    if isinstance(document, dict) and document.get("kind") == TWO_WIRE:
+        return TwoWireModel.from_dict(document)
+    return IdentifiedModel.from_dict(document)
+
+
+def load_any_model_file(path: str | os.PathLike) -> IdentifiedModel | TwoWireModel:
+    """A model file of any family, by its `kind` (gpi, the default, or two_wire); problems as load_model_file."""
     text = read_text_file(path, "model file")
     try:
-        document = parse_yaml(text)
-        if isinstance(document, dict) and document.get("kind") == TWO_WIRE:
-            return TwoWireModel.from_dict(document)
-        return IdentifiedModel.from_dict(document)
+        return any_model_from_yaml_text(text)
     except InputError as error:
         raise InputError(f"model file {Path(path)}: {error}") from None
 

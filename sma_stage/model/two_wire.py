@@ -411,6 +411,7 @@ class TwoWireStream:
         self._n, self._m = params.wire_operators, params.output_operators
         self._state = model.rest_state() if state is None else np.array(state.values, dtype=float)
         self._trial = np.empty_like(self._state)
+        self.last_clipped = 0
 
     @property
     def output(self) -> float:
@@ -426,11 +427,21 @@ class TwoWireStream:
         """Hold current_a [A] for step_s [s]; the output at the end [output unit]."""
         return float(_advance(self._state, self._p, self._n, self._m, float(current_a), float(step_s)))
 
+    def current_for(self, target: float, horizon_s: float) -> float:
+        """The current [A] within +-max_current_a that, held for horizon_s [s], brings the output nearest
+        target [output unit]; the state does not move. last_clipped: +1 (-1) when the target is above (below)
+        what the limit reaches over the horizon, else 0."""
+        limit = self.max_current_a
+        current = _command_for(self._state, self._p, self._n, self._m, float(target), float(horizon_s),
+                               -limit, limit, self._trial)
+        short = _held(self._state, self._p, self._n, self._m, current, float(horizon_s), float(target), self._trial)
+        self.last_clipped = (current == limit and short < 0.0) - (current == -limit and short > 0.0)
+        return current
+
     def command_for(self, target: float, step_s: float) -> float:
         """The current [A] within +-max_current_a that, held for step_s [s], brings the output nearest target
         [output unit]; the stream then holds it (its state moves to the end of the step)."""
-        current = _command_for(self._state, self._p, self._n, self._m, float(target), float(step_s),
-                               -self.max_current_a, self.max_current_a, self._trial)
+        current = self.current_for(target, step_s)
         self.step(current, step_s)
         return current
 

@@ -47,9 +47,10 @@ from sma_stage.control.compensator import (
     checked_gains,
     imc_gains,
 )
+from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.io.rosbag_io import joint_index
-from sma_stage.model import GPIInverseStream, IdentifiedModel, load_model_file
+from sma_stage.model.identified import any_model_from_yaml_text, load_any_model_file
 from sma_stage.model.inverse import METHODS
 from sma_stage.nodes._common import (
     COMMAND_QOS,
@@ -101,7 +102,7 @@ COMPENSATOR_PARAMS = [
 ]
 
 
-def model_from(values: dict[str, object], changed: str | None = None) -> tuple[IdentifiedModel, str]:
+def model_from(values: dict[str, object], changed: str | None = None) -> tuple[AnyModel, str]:
     """(the model the parameter values name, a one-line description of where it came from): `changed`
     (a model source just set) first, else model, else model_file, else the shipped default."""
     order = [changed] if changed in MODEL_SOURCES and values[changed] else []
@@ -109,11 +110,11 @@ def model_from(values: dict[str, object], changed: str | None = None) -> tuple[I
     source = order[0] if order else None
     if source == "model":
         try:
-            return IdentifiedModel.from_yaml_text(str(values["model"])), "the pushed model"
+            return any_model_from_yaml_text(str(values["model"])), "the pushed model"
         except InputError as error:
             raise InputError(f"parameter model: {error}") from None
     path = str(values["model_file"]) if source == "model_file" else str(DEFAULT_MODEL_FILE)
-    return load_model_file(path), path
+    return load_any_model_file(path), path
 
 
 def unexpected(error: Exception) -> str:
@@ -157,7 +158,7 @@ class CompensatorNode(Node):
         self.create_timer(self.period_s, quiet_on_shutdown(self, self.on_tick), clock=self.control_clock())
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
 
-    def settings(self, model: IdentifiedModel, values: dict[str, object]) -> dict[str, float]:
+    def settings(self, model: AnyModel, values: dict[str, object]) -> dict[str, float]:
         """The control core's loop settings from the node's parameter values and the model (InputError when
         one is unusable): kp and ki (derived or manual), lead limits, deadband, rate limit."""
         if values["tuning"] not in TUNINGS:
@@ -172,20 +173,15 @@ class CompensatorNode(Node):
                 "deadband_m": float(values["deadband"]),
                 "max_rate_a_per_s": float(values["max_current_rate"])}
 
-    def build_core(self, model: IdentifiedModel, values: dict[str, object]) -> Compensator:
+    def build_core(self, model: AnyModel, values: dict[str, object]) -> Compensator:
         """A control core for the model with the node's settings (InputError when either is unusable)."""
         return Compensator(model, float(values["max_current"]), str(values["inverse_method"]),
                            **self.settings(model, values))
 
     @property
-    def model(self) -> IdentifiedModel:
+    def model(self) -> AnyModel:
         """The identified model in force."""
         return self.core.model
-
-    @property
-    def inverse(self) -> GPIInverseStream:
-        """The streaming GPI inverse in force."""
-        return self.core.inverse
 
     @property
     def integral_m(self) -> float:
@@ -199,11 +195,9 @@ class CompensatorNode(Node):
 
     def describe_model(self) -> str:
         """One line naming the model in force."""
-        effects = " + ".join(self.model.effect_names) or "no effect"
         loop = (f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s ({self.values['tuning']})"
                 if self.values["feedback"] else "feedforward")
-        return (f"{self.inverse.method} inverse of a {self.model.operators}-operator GPI with {effects} from "
-                f"{self.model_source}, {loop}")
+        return f"{self.core.drive.describe()} from {self.model_source}, {loop}"
 
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         """Validate a parameter change as a whole; swap in the new model when it changed."""
@@ -241,7 +235,7 @@ class CompensatorNode(Node):
         response.success, response.message = False, "parameter model_file is empty: nothing to reload"
         if path:
             try:
-                core = self.build_core(load_model_file(path), self.values)
+                core = self.build_core(load_any_model_file(path), self.values)
             except InputError as error:
                 response.message = str(error)
             except Exception as error:  # noqa: BLE001 -- as in on_set_parameters
@@ -304,7 +298,7 @@ class CompensatorNode(Node):
                 self.follow_control_period((now_ns - previous_ns) * 1e-9)
             if self.setpoint_m is None or not self.values["enabled"]:
                 return
-            if self.values["feedback"] or self.core.tau_s > 0.0 or self.model.effect("drift") is not None:
+            if self.values["feedback"] or self.core.drive.evolves:
                 self.publish_command(self.compute_command(self.elapsed_s()))
             else:
                 self.publish_command(self.command_a)
@@ -351,7 +345,7 @@ class CompensatorNode(Node):
         except InputError as error:  # a core that cannot command (e.g. manual gains too large) keeps the last one
             self.warnings.warn("command", f"current_cmd held at {self.command_a:g} A: {error}")
             return self.command_a
-        if self.inverse.last_clipped:
+        if self.core.drive.out_of_reach:
             self.clipped_count += 1
             self.warnings.warn("clipped", f"target {self.core.target_m:.4g} m is beyond the model's reach within "
                                   f"+-{self.values['max_current']:g} A: current at its limit")
