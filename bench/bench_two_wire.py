@@ -2,10 +2,12 @@
 
     .venv/bin/python bench/bench_two_wire.py [--calls 20000]
 
-Per call as a compensator makes them, one sample at a time: the two-wire exact inverse (`command_for`: a bisection
+Per call as a compensator makes them, one sample at a time: the two-wire exact inverse (`command_for`: regula falsi
 over the current, each trial one held step of both wires' plays and the output layer) and the GPI's streaming exact
-inverse (20 operators), latency percentiles (target for the two-wire model: p99 <= 20 us); the forward model over a
-record (samples per second); and `fit_two_wire` on the second physical stage's paper identification record.
+inverse (20 operators); then the package's whole control core (`Compensator.command`, feedforward at 100 Hz: the
+model's states advanced, the inverse, the lead, the rate limit) with each family's model; latency percentiles
+(target for the two-wire model: p99 <= 20 us); the forward model over a record (samples per second); and
+`fit_two_wire` on the second physical stage's paper identification record.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "test"))
 
-from sma_stage.model import GPIInverseStream, GPIParameters  # noqa: E402
+from sma_stage.control.compensator import Compensator  # noqa: E402
+from sma_stage.model import Effect, GPIInverseStream, GPIParameters, IdentifiedModel  # noqa: E402
 from sma_stage.model.two_wire import TwoWireModel, TwoWireParameters  # noqa: E402
 
 STAGE_GPI = GPIParameters(a1=0.5e-3, a2=0.6, a3=0.1, a4=0.0, a5=0.5e-3, a6=0.6, a7=-0.2, a8=0.05e-3,
@@ -66,6 +69,12 @@ def main() -> None:
     print("| inverse | median [us] | p99 [us] | max [us] |\n|---|---|---|---|")
     print(row("two-wire command_for (4+4 operators, 5 output operators)", two_wire))
     print(row("GPI exact inverse step (20 operators)", gpi_latency))
+    lagged_gpi = IdentifiedModel(STAGE_GPI, 20, (Effect("thermal_lag", {"tau_s": 3.6}),))
+    for name, model, family_targets in (("two-wire model", TWO_WIRE, targets),
+                                        ("GPI (20 operators) + thermal_lag", lagged_gpi, gpi_targets)):
+        command = Compensator(model, 5.0).command
+        print(row(f"Compensator.command, {name}", latencies(lambda target, command=command: command(target, dt_s=0.01),
+                                                            family_targets)))
     record_t = np.arange(0.0, 2000.0, 0.01)
     record_u = 5.0 * np.sin(2 * np.pi * record_t / 250.0)
     TWO_WIRE.predict(record_t[:100], record_u[:100])

@@ -730,6 +730,37 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     print(json.dumps({key: report[key] for key in ("identification", "validation", "samples", "fit_seconds")}))
 
 
+def test_identification_refit_deploys_the_chosen_family_and_the_compensator_runs_it(ros, tmp_path):
+    """With families gpi and two_wire the model of the family the report marks chosen is written and pushed; with
+    two_wire alone a two-wire model goes to the compensator, which runs it; an unknown family is refused."""
+    from sma_stage.model.identified import load_any_model_file
+    from sma_stage.model.two_wire import TwoWireModel
+
+    model_file = tmp_path / "fitted.yaml"
+    stage, identification = fast_stage_and_identification(ros, model_file=str(model_file),
+                                                           families=["gpi", "two_wire"])
+    compensator = compensator_node(ros, rate_hz=2.0)
+    probe = ros.probe()
+    wait_until(lambda: stage.count_publishers("current_cmd") >= 2, 5.0, "discovery")
+    assert ros.call(probe, Trigger, "identification/excite").success
+    wait_until(lambda: not identification.exciting, 10.0, "the excitation to end")
+    time.sleep(0.1)
+    answer = refit_answer(ros, probe)
+    assert answer.success and "deployed (held-out RMS: gpi" in answer.message, answer.message
+    report = published_report(ros)
+    (chosen,) = [row["family"] for row in report["families"] if row["chosen"]]
+    deployed = load_any_model_file(model_file)
+    assert isinstance(deployed, TwoWireModel) == (chosen == "two_wire")
+    assert report["compensator"]["pushed"] and compensator.model == deployed
+    refused = identification.set_parameters([Parameter("families", value=["gpi", "bouc_wen"])])[0]
+    assert not refused.successful and "unknown model family 'bouc_wen'" in refused.reason
+    assert identification.set_parameters([Parameter("families", value=["two_wire"])])[0].successful
+    answer = refit_answer(ros, probe)
+    assert answer.success and "family two_wire deployed" in answer.message, answer.message
+    assert isinstance(compensator.model, TwoWireModel) and compensator.model == load_any_model_file(model_file)
+    assert "two-wire" in compensator.describe_model() and compensator.model.state is not None
+
+
 def published_report(ros: Ros) -> dict:
     """The identification node's latest report on ~/report (transient local: a new subscriber gets it)."""
     reports = Listener(ros.probe(f"report_reader_{len(ros.nodes)}"), String, "identification/report", REPORT_QOS)

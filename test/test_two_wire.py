@@ -196,7 +196,7 @@ def test_an_unknown_family_is_refused_in_one_line():
 
 def test_the_pipeline_compares_the_families_and_keeps_the_gpi_beside_a_chosen_two_wire(nominal_stage):
     """identify_recording with both families on the second stage: the two-wire model is deployed, its row
-    marked chosen, and the GPI family's model is kept for the compensator node (which runs GPI models)."""
+    marked chosen, the report says how the compensator runs it, and the GPI family's model is kept beside it."""
     from sma_stage.identify.pipeline import identify_recording
     from sma_stage.io.series import make_series
     from sma_stage.model.identified import IdentifiedModel
@@ -209,6 +209,7 @@ def test_the_pipeline_compares_the_families_and_keeps_the_gpi_beside_a_chosen_tw
     assert isinstance(found.model, TwoWireModel) and found.model.state is not None
     assert isinstance(found.gpi_model, IdentifiedModel) and found.gpi_model.state is not None
     assert found.report["identified_model"]["kind"] == "two_wire"
+    assert list(found.report["compensation"]) == ["two_wire"]
     from sma_stage.identify.report import markdown_summary
 
     summary = markdown_summary(found.report, "diagnosis")

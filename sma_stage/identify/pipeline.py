@@ -22,7 +22,7 @@ from sma_stage.model.identified import IdentifiedModel, Start
 from sma_stage.model.two_wire import TwoWireModel
 
 MIN_HELD_OUT = 10
-GPI_MODEL_FILE = "model_gpi.yaml"  # fewest held-out samples a validation is scored on
+GPI_MODEL_FILE = "model_gpi.yaml"  # gpi_tool writes the GPI family's model here when another family is chosen
 
 Progress = Callable[[str], None] | None
 
@@ -58,7 +58,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
 
     families (sma_stage.identify.families.FAMILIES): with validation data and more than the GPI named, each
     family is fitted on the same record and the one chosen by held-out error and BIC is deployed; the report's
-    "families" table says what each gave. The default, the GPI alone, is what the compensator node runs.
+    "families" table says what each gave. The compensator runs the model of either family.
     """
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
@@ -93,10 +93,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     if found is not None:
         report["diagnosis"] = found.to_dict()
     report["identified_model"] = model.without_state().to_dict()
-    report["compensation"] = compensation_notes(gpi_model)
-    if model is not gpi_model:
-        report["compensation"]["two_wire"] = (f"the compensator node runs GPI models: {GPI_MODEL_FILE} holds the "
-                                              "GPI family's model beside the two-wire one")
+    report["compensation"] = compensation_notes(model)
     report["warnings"] = list(warnings)
     return Identification(model, fit, found, report, warnings, valid, scored_from, gpi_model)
 

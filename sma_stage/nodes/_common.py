@@ -58,7 +58,7 @@ class Param:
     """One node parameter: default value, description, range (numbers) and whether it is read-only."""
 
     name: str
-    default: float | int | bool | str
+    default: float | int | bool | str | list[str]
     description: str
     low: float | None = None
     high: float | None = None
@@ -83,6 +83,8 @@ def _parameter_type(value: object) -> int:
         return ParameterType.PARAMETER_INTEGER
     if isinstance(value, float):
         return ParameterType.PARAMETER_DOUBLE
+    if isinstance(value, list):
+        return ParameterType.PARAMETER_STRING_ARRAY
     return ParameterType.PARAMETER_STRING
 
 

@@ -1,7 +1,7 @@
 """The `identification` node: records `current_applied` [A] (the current the stage applied, whoever
 commanded it; `input_topic`) and `joint_states` [m] into a bounded buffer (and
 into a rosbag2 directory when `record_bag` is set), drives the paper's identification signal on request,
-and refits the GPI model on request.
+and refits the model on request.
 
 Services (std_srvs/Trigger):
 - `~/excite`: publish A(t) sin(2 pi t / excite_period) on current_cmd, A falling linearly from
@@ -13,7 +13,8 @@ Services (std_srvs/Trigger):
   (sma_stage.identify.pipeline.identify_recording): fits the first (1 - holdout_fraction) of the
   recording, validates on the held-out tail (the model runs over the whole recording, the errors are taken
   on the tail only), diagnoses the residual (diagnose_rounds > 0) and deploys the GPI with every effect the
-  diagnosis added. Writes `model_file` atomically, pushes the whole model as one parameter (`model`, its
+  diagnosis added; with more than one of `families`, each family is fitted and the one with the lowest
+  held-out error (then BIC) is deployed (a two-wire model or the GPI). Writes `model_file` atomically, pushes the whole model as one parameter (`model`, its
   YAML text) to `<compensator_name>/set_parameters_atomically`, and answers with the JSON report (also on
   `~/report`).
 - `~/clear`: empties the buffer.
@@ -43,15 +44,16 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
+from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
+from sma_stage.identify.families import check_families
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import strict_json
 from sma_stage.io.rosbag_io import joint_index, output_times, unfinished_bags
 from sma_stage.io.series import Series
-from sma_stage.model import IdentifiedModel
 from sma_stage.model.parameters import MAX_OPERATORS
 from sma_stage.nodes._common import (
     COMMAND_QOS,
@@ -83,6 +85,8 @@ IDENTIFICATION_PARAMS = [
           "in the model written and pushed", 0, 4),
     Param("diagnose_workers", 1, "processes fitting a diagnosis round's candidates at once (1: in this node's "
           "process; more finish sooner and take CPU from a stage on the same computer)", 1, 64),
+    Param("families", ["gpi"], "model families ~/refit fits on the same recording: gpi, two_wire; the one with the "
+          "lowest held-out error (then BIC) is written and pushed, and the compensator runs it"),
     Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
           read_only=True),
@@ -158,8 +162,14 @@ def refit_summary(report: dict) -> str:
         error = f"{named} added; held-out RMS {before:.3g} % -> {after:.3g} %"
     else:
         error = f"no diagnosis; held-out RMS {validation['rms_pct']:.3g} %"
-    parts = [f"refit ok: {report['model']['operators']} operators, {error}",
-             f"model {report['model_file'] or 'not written (model_file empty)'}",
+    parts = [f"refit ok: {report['model']['operators']} operators, {error}"]
+    families = report.get("families")
+    if families:
+        scores = ", ".join(f"{row['family']} {row['validation']['rms_pct']:.3g} %" if row["validation"] else
+                           f"{row['family']} not fitted" for row in families)
+        chosen = [row["family"] for row in families if row["chosen"]]
+        parts.append(f"family {chosen[0] if chosen else 'gpi'} deployed (held-out RMS: {scores})")
+    parts += [f"model {report['model_file'] or 'not written (model_file empty)'}",
              f"report {report['report_file'] or 'on ~/report only'}",
              "pushed to the compensator" if report["compensator"]["pushed"] else "NOT pushed to the compensator"]
     parts += [f"warning: {warning}" for warning in report["warnings"]]
@@ -263,7 +273,7 @@ class BagThread:
 
 
 class IdentificationNode(Node):
-    """Records the stage's input and output, excites it, and refits the GPI model on request."""
+    """Records the stage's input and output, excites it, and refits the model on request."""
 
     NODE_NAME = "identification"
 
@@ -276,6 +286,7 @@ class IdentificationNode(Node):
         try:
             self.values = declare_all(self, IDENTIFICATION_PARAMS)
             self.check_storage(str(self.values["bag_storage"]))
+            check_families(list(self.values["families"]))
             self.open_bag(str(self.values["record_bag"]), str(self.values["bag_storage"]),
                           bool(self.values["bag_overwrite"]))
         except InputError:
@@ -344,6 +355,7 @@ class IdentificationNode(Node):
         candidate = {**self.values, **{change.name: change.value for change in changes}}
         try:
             self.check_storage(str(candidate["bag_storage"]))
+            check_families(list(candidate["families"]))
             switch = candidate["record_bag"] != self.values["record_bag"]
             if switch:
                 started = self.new_recorder(str(candidate["record_bag"]), str(candidate["bag_storage"]),
@@ -613,7 +625,8 @@ class IdentificationNode(Node):
                                    operators=int(self.values["operators"]) or None,
                                    diagnose_rounds=int(self.values["diagnose_rounds"]),
                                    source="identification node ~/refit",
-                                   workers=int(self.values["diagnose_workers"]))
+                                   workers=int(self.values["diagnose_workers"]),
+                                   families=tuple(self.values["families"]))
         report = found.report
         self.check_held_out(report, series)
         report["model_file"] = self.write_model(found.model)
@@ -629,6 +642,9 @@ class IdentificationNode(Node):
         """InputError when the model to deploy misses the held-out tail by more than max_held_out_rms_pct."""
         diagnosis = report.get("diagnosis")
         held_out = (diagnosis["after"]["validation"] if diagnosis is not None else report["validation"]) or {}
+        chosen = [row for row in report.get("families", ()) if row["chosen"]]
+        if chosen:
+            held_out = chosen[0]["validation"] or {}
         rms_pct, limit = held_out.get("rms_pct"), float(self.values["max_held_out_rms_pct"])
         if rms_pct is not None and rms_pct > limit:
             raise InputError(f"the model misses the held-out tail by {rms_pct:.3g} % RMS, more than "
@@ -643,7 +659,7 @@ class IdentificationNode(Node):
             report["warnings"].append(f"cannot write {report['report_file']}: {error.strerror or error}")
             report["report_file"] = None
 
-    def write_model(self, model: IdentifiedModel) -> str | None:
+    def write_model(self, model: AnyModel) -> str | None:
         """Write the identified model's file atomically (None when model_file is empty)."""
         path = str(self.values["model_file"])
         if not path:
@@ -654,7 +670,7 @@ class IdentificationNode(Node):
             raise InputError(f"cannot write model_file {path}: {error.strerror or error}") from None
         return path
 
-    def push(self, model: IdentifiedModel) -> dict:
+    def push(self, model: AnyModel) -> dict:
         """Send the whole model to the compensator as one atomic parameter change (its `model`)."""
         name = self.push_client.srv_name
         if not self.push_client.wait_for_service(timeout_sec=float(self.values["push_timeout"])):
