@@ -324,6 +324,29 @@ def test_stage_with_sim_time_publishes_a_fast_clock(ros):
     assert simulated > 5.0 * wall, f"{simulated:.2f} s simulated in {wall:.2f} s of wall time"
 
 
+def test_a_namespaced_stage_publishes_its_own_clock_which_its_nodes_follow_when_remapped(ros):
+    """Two simulated stages on sim time, one in namespace stage2: the root stage's clock is /clock, stage2's is
+    /stage2/clock (the clocks used to interleave on /clock); a compensator of stage2 remapped /clock:=clock
+    runs on stage2's time."""
+    stage_node(ros, rate_hz=100.0, time_scale=100.0, use_sim_time=True)
+    params = [Parameter(name, value=value) for name, value in {"rate_hz": 100.0, "time_scale": 1.0,
+                                                               "use_sim_time": True}.items()]
+    ros.add(StageNode(context=ros.context, namespace="stage2", parameter_overrides=params))
+    compensator = ros.add(CompensatorNode(context=ros.context, namespace="stage2",
+                                          cli_args=["--ros-args", "-r", "/clock:=clock"],
+                                          parameter_overrides=[Parameter("use_sim_time", value=True)]))
+    probe = ros.probe()
+    root, own = Listener(probe, ClockMessage, "/clock"), Listener(probe, ClockMessage, "/stage2/clock")
+    wait_until(lambda: len(root.messages) >= 20 and len(own.messages) >= 20, 10.0, "both clocks")
+    assert probe.count_publishers("/clock") == 1 and probe.count_publishers("/stage2/clock") == 1
+    seconds = [message.clock.sec + 1e-9 * message.clock.nanosec for message in root.messages]
+    assert np.all(np.diff(seconds) > 0.0), "one stage's time on /clock, never going back"
+    wait_until(lambda: compensator.get_clock().now().nanoseconds > 0, 5.0, "stage2's clock at its compensator")
+    now = compensator.get_clock().now().nanoseconds * 1e-9
+    latest = own.messages[-1].clock.sec + 1e-9 * own.messages[-1].clock.nanosec
+    assert abs(now - latest) < 1.0 < seconds[-1] - now, (now, latest, seconds[-1])
+
+
 def test_stage_executable_refuses_an_out_of_range_parameter():
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     done = subprocess.run([sys.executable, "-m", "sma_stage.nodes.stage_node", "--ros-args", "-p", "rate_hz:=1e6"],

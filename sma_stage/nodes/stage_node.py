@@ -22,8 +22,10 @@ deactivates (output off).
 from then). A long computation on a machine shared with a fast simulated stage (a refit) then has the CPU.
 
 Time: a timer ticks every 1/rate_hz wall seconds (steady clock). With use_sim_time each tick advances the
-simulator by exactly time_scale/rate_hz simulated seconds, publishes /clock from the stage's time and
-stamps joint_states with it. Otherwise the stamps come from the node clock and each tick advances the
+simulator by exactly time_scale/rate_hz simulated seconds, publishes `clock` from the stage's time and
+stamps joint_states with it. `clock` is relative: /clock in the root namespace, /NS/clock for a stage in
+namespace NS, so that stages side by side keep their own time; the other nodes of a namespaced stage follow
+it with the remapping `/clock:=clock` (launch/stage.launch.py sets it). Otherwise the stamps come from the node clock and each tick advances the
 simulator by the steady-clock time since the previous tick times time_scale (at most MAX_CATCH_UP_STEPS
 periods). On instruments the stage's time is the host's steady clock times time_scale (1 for a real stage; a
 loopback test rig may run faster).
@@ -197,7 +199,7 @@ class StageNode(LifecycleNode):
         self.joint_pub = self.create_publisher(JointState, "joint_states", STATE_PUBLISH_QOS)
         self.applied_pub = self.create_publisher(Float64, "current_applied", COMMAND_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.clock_pub = self.create_publisher(ClockMessage, "/clock", QoSProfile(depth=10)) \
+        self.clock_pub = self.create_publisher(ClockMessage, "clock", QoSProfile(depth=10)) \
             if self.use_sim_time else None
         self.create_subscription(Float64, "current_cmd", self.on_command, COMMAND_QOS)
         self.create_service(Trigger, "~/stop", self.on_stop)
