@@ -54,9 +54,9 @@ def unique_domain() -> int:
 class Ros:
     """A private rclpy context with a background SingleThreadedExecutor and helpers to wait and call."""
 
-    def __init__(self) -> None:
+    def __init__(self, args: list[str] | None = None) -> None:
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=unique_domain())
+        rclpy.init(args=args, context=self.context, domain_id=unique_domain())
         self.executor = SingleThreadedExecutor(context=self.context)
         self.nodes: list[Node] = []
         self.error: Exception | None = None
@@ -322,6 +322,26 @@ def test_stage_with_sim_time_publishes_a_fast_clock(ros):
     last, wall = listener.messages[-1].clock, time.monotonic() - start
     simulated = (last.sec - first.sec) + 1e-9 * (last.nanosec - first.nanosec)
     assert simulated > 5.0 * wall, f"{simulated:.2f} s simulated in {wall:.2f} s of wall time"
+
+
+def test_a_node_renamed_by_process_arguments_is_one_node_with_its_services():
+    """`ros2 launch` (a Node with name and namespace) and `ros2 run -r __node:=... -r __ns:=...` rename every node
+    the process makes: the identification node's hidden service helper used to take the same name, so the graph
+    held two /stage2/lab_identification nodes and `ros2 node list` showed neither."""
+    ros = Ros(args=["--ros-args", "-r", "__node:=lab_identification", "-r", "__ns:=/stage2"])
+    try:
+        identification = ros.add(IdentificationNode(context=ros.context))
+        probe = ros.add(Node("probe", context=ros.context, use_global_arguments=False))
+        assert identification.get_fully_qualified_name() == "/stage2/lab_identification"
+        wait_until(lambda: ("lab_identification", "/stage2") in probe.get_node_names_and_namespaces(), 5.0, "the node")
+        names = [name for name, _ in probe.get_node_names_and_namespaces()]
+        assert names.count("lab_identification") == 1, names
+        answer = ros.call(probe, Trigger, "/stage2/lab_identification/clear")
+        assert answer.success, answer.message
+        services = dict(probe.get_service_names_and_types())
+        assert "/stage2/lab_identification/refit" in services
+    finally:
+        ros.close()
 
 
 def test_a_namespaced_stage_publishes_its_own_clock_which_its_nodes_follow_when_remapped(ros):

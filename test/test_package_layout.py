@@ -117,3 +117,33 @@ def test_an_installed_package_finds_its_installed_config(colcon_install: Path) -
     launchers = list(colcon_install.glob("lib/python*/site-packages/sma_stage/nodes/launch.py"))
     assert len(launchers) == 1, launchers
     assert find_config_dir(launchers[0]) == colcon_install / "share" / PACKAGE / "config"
+
+
+LAUNCH_ARGUMENTS = {
+    "stage.launch.py": ["namespace", "backend", "hardware_file", "params_file", "use_sim_time", "time_scale",
+                        "record_bag", "bag_storage"],
+    "stages.launch.py": ["count", "params_file", "use_sim_time", "time_scale"],
+}
+
+
+def launch_arguments(path: Path) -> dict[str, tuple[str, str]]:
+    """The ARGUMENTS literal of a launch file (name -> (default, description)), read without importing it:
+    `launch` is not installed here (it is checked with the real `ros2 launch` outside the project)."""
+    import ast
+
+    tree = ast.parse(path.read_text(), str(path))
+    (assignment,) = [node for node in tree.body if isinstance(node, ast.Assign)
+                     and [getattr(target, "id", None) for target in node.targets] == ["ARGUMENTS"]]
+    return ast.literal_eval(assignment.value)
+
+
+def test_launch_files_are_installed_and_declare_the_documented_arguments(colcon_install: Path) -> None:
+    installed = colcon_install / "share" / PACKAGE / "launch"
+    assert sorted(path.name for path in installed.glob("*.launch.py")) == sorted(LAUNCH_ARGUMENTS)
+    readme = (REPO / "README.md").read_text()
+    for name, arguments in LAUNCH_ARGUMENTS.items():
+        assert (installed / name).read_bytes() == (REPO / "launch" / name).read_bytes()
+        declared = launch_arguments(installed / name)
+        assert list(declared) == arguments, name
+        assert all(isinstance(default, str) and description for default, description in declared.values())
+        assert all(f"{argument}:=" in readme for argument in arguments), f"README documents {name}'s arguments"

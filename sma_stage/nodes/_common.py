@@ -183,8 +183,10 @@ class WorkerService:
     def __init__(self, owner: Node, service_type: type, name: str, callback: Callable) -> None:
         self._callback = callback
         self.cancel = threading.Event()  # set by close(): a running callback's fit raises Cancelled
+        # Not the process's arguments: `-r __node:=X` (ros2 launch's name, ros2 run's remap) would give it the
+        # owner's name, and the graph would hold two nodes of that name.
         self._node = Node(f"_{owner.get_name()}_{name}_worker", namespace=owner.get_namespace(),
-                          context=owner.context, start_parameter_services=False)
+                          context=owner.context, start_parameter_services=False, use_global_arguments=False)
         # Reentrant: a request is served while another one's callback runs, and the wake-up gets through.
         concurrent = ReentrantCallbackGroup()
         self._wake = self._node.create_guard_condition(lambda: None, callback_group=concurrent)
