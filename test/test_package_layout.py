@@ -147,3 +147,23 @@ def test_launch_files_are_installed_and_declare_the_documented_arguments(colcon_
         assert list(declared) == arguments, name
         assert all(isinstance(default, str) and description for default, description in declared.values())
         assert all(f"{argument}:=" in readme for argument in arguments), f"README documents {name}'s arguments"
+
+
+def test_compiled_kernels_are_cached_in_the_user_cache_not_the_install_tree(tmp_path: Path) -> None:
+    """A copy of the package used from another folder (as an install tree is) compiles its kernels into
+    $XDG_CACHE_HOME/sma_stage/numba and writes nothing beside its modules (an /opt/ros install is read-only)."""
+    import shutil
+
+    tree = tmp_path / "site"
+    shutil.copytree(REPO / PACKAGE, tree / PACKAGE, ignore=shutil.ignore_patterns("__pycache__"))
+    cache = tmp_path / "cache"
+    env = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
+    env.update(PYTHONPATH=str(tree), XDG_CACHE_HOME=str(cache), PYTHONDONTWRITEBYTECODE="1")
+    code = ("import numpy as np; from sma_stage.model import GPIParameters, forward; "
+            "p = GPIParameters(5e-4, 0.6, 0.1, 0.0, 5e-4, 0.6, -0.2, 5e-5, 5e-5, 0.2, 5e3); "
+            "print(forward(np.linspace(-5, 5, 50), p, 10)[-1])")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path,
+                          timeout=180)
+    assert done.returncode == 0, done.stderr
+    assert list((cache / "sma_stage" / "numba").rglob("*.nbi")), "kernels cached in the user cache"
+    assert not [path for path in tree.rglob("*") if path.suffix in (".nbi", ".nbc")], "nothing in the tree"
