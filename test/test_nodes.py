@@ -207,6 +207,42 @@ def test_stage_watchdog_zeroes_a_stale_command(ros):
     assert 250.0 < float(values["wire_a_temperature_k"]) < 500.0
 
 
+def stage_statuses(diagnostics: "Listener") -> list:
+    return [status for array in diagnostics.messages for status in array.status if status.name.endswith("sim stage")]
+
+
+def test_stage_diagnostics_say_idle_is_ok_and_clamping_is_a_warning(ros):
+    """An idle stage (the watchdog holding zero) sat at WARN while one clamping every command reported OK."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    stage = stage_node(ros, rate_hz=100.0, command_timeout=0.3, max_current=2.0)
+    probe = ros.probe()
+    send = command_publisher(probe)
+    diagnostics = Listener(probe, DiagnosticArray, "/diagnostics")
+    wait_until(lambda: stage.count_publishers("current_cmd") >= 1, 5.0, "the command publisher")
+    send(1.0)
+    wait_until(lambda: stage.watchdog_tripped, 3.0, "the watchdog")
+    wait_until(lambda: any(s.message.startswith("idle") for s in stage_statuses(diagnostics)), 3.0, "an idle status")
+    idle = [s for s in stage_statuses(diagnostics) if s.message.startswith("idle")][-1]
+    assert idle.level == DiagnosticStatus.OK, idle.message
+    stop = threading.Event()
+
+    def clamped_commands() -> None:
+        while not stop.is_set():
+            send(4.0)
+            time.sleep(0.02)
+
+    sender = threading.Thread(target=clamped_commands, daemon=True)
+    sender.start()
+    try:
+        wait_until(lambda: any("clamped" in s.message for s in stage_statuses(diagnostics)), 3.0, "a clamping status")
+    finally:
+        stop.set()
+        sender.join()
+    clamping = [s for s in stage_statuses(diagnostics) if "clamped" in s.message][-1]
+    assert clamping.level == DiagnosticStatus.WARN and "+-2 A" in clamping.message
+
+
 def test_stage_publishes_the_current_it_applied_clamped_and_zeroed_by_the_watchdog(ros):
     stage = stage_node(ros, rate_hz=100.0, command_timeout=0.3, max_current=2.0)
     probe = ros.probe()
@@ -276,7 +312,7 @@ def test_timer_callbacks_end_quietly_once_the_context_is_shut_down():
     try:
         compensator.setpoint_m = 1e-4
         callbacks = [timer.callback for node in (compensator, stage) for timer in node.timers]
-        assert len(callbacks) == 3
+        assert len(callbacks) == 4  # the compensator: control and diagnostics; the stage: its step and diagnostics
         for callback in callbacks:
             callback()  # the context is up: they publish
         context.try_shutdown()
@@ -539,6 +575,34 @@ def test_stage_executable_refuses_a_hostile_hardware_file_in_one_line(tmp_path, 
                           cwd=REPO)
     lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
     assert done.returncode == 2 and len(lines) == 1 and "cannot start: hardware file" in lines[0], lines
+
+
+def test_compensator_says_when_feedback_has_no_measurement_and_is_on_diagnostics(ros):
+    """With feedback on and no joint_states ever, the compensator published its feedforward current and said
+    nothing; now a warning in the log and WARN on /diagnostics; a measurement brings it back to OK."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rcl_interfaces.msg import Log
+
+    compensator = compensator_node(ros, rate_hz=20.0, feedback=True, measurement_timeout=1.0)
+    probe = CompensatorProbe(ros, compensator)
+    diagnostics = Listener(probe.node, DiagnosticArray, "/diagnostics")
+    logs = Listener(probe.node, Log, "/rosout", 100)
+
+    def statuses() -> list:
+        return [st for array in diagnostics.messages for st in array.status if st.name.endswith(": compensator")]
+
+    wait_until(lambda: any(st.message == "waiting for a setpoint" for st in statuses()), 5.0, "an idle status")
+    assert statuses()[-1].level == DiagnosticStatus.OK
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: any(st.level == DiagnosticStatus.WARN and "no joint_states has come" in st.message
+                           for st in statuses()), 5.0, "WARN on /diagnostics")
+    wait_until(lambda: any("no joint_states has come" in log.msg for log in logs.messages), 5.0, "the warning logged")
+    count = len(statuses())
+    for _ in range(30):
+        probe.measure(1e-4)
+        time.sleep(0.05)
+    wait_until(lambda: len(statuses()) > count + 1, 5.0, "a status after the measurements")
+    assert statuses()[-1].level == DiagnosticStatus.OK and statuses()[-1].message == "running", statuses()[-1].message
 
 
 def test_compensator_takes_a_whole_model_through_its_parameter_service(ros):
@@ -996,6 +1060,38 @@ def test_identification_excite_runs_once_at_a_time_and_drives_current_cmd(ros):
     refused = refit_answer(ros, probe)
     assert not refused.success and "excitation is running" in refused.message
     identification.stop_excitation()
+
+
+def test_an_excitation_can_be_aborted_and_reports_its_progress(ros):
+    """~/clear left current_cmd at 50 Hz and nothing could stop an excitation; now ~/abort_excitation ends it
+    with 0 A and /diagnostics shows how far it got."""
+    identification = identification_node(ros, excite_period=10.0, excite_duration=1000.0, excite_rate_hz=50.0)
+    probe = ros.probe()
+    commands = Listener(probe, Float64, "current_cmd", COMMAND_QOS)
+    diagnostics = Listener(probe, DiagnosticArray, "/diagnostics")
+    wait_until(lambda: identification.count_subscribers("current_cmd") >= 1
+               and probe.count_publishers("current_cmd") >= 1, 5.0, "discovery")
+    refused = ros.call(probe, Trigger, "identification/abort_excitation")
+    assert not refused.success and refused.message == "no excitation is running"
+    assert ros.call(probe, Trigger, "identification/excite").success
+
+    def progress() -> str | None:
+        for array in reversed(diagnostics.messages):
+            for status in array.status:
+                if status.name.endswith("identification") and status.message.startswith("exciting"):
+                    return {value.key: value.value for value in status.values}["excitation_progress_pct"]
+        return None
+
+    wait_until(lambda: progress() is not None, 5.0, "the excitation's progress on /diagnostics")
+    assert 0.0 <= float(progress()) < 5.0
+    answer = ros.call(probe, Trigger, "identification/abort_excitation")
+    assert answer.success and answer.message.startswith("excitation aborted after ") and "\n" not in answer.message
+    wait_until(lambda: commands.messages and commands.messages[-1].data == 0.0, 5.0, "0 A on current_cmd")
+    count = len(commands.messages)
+    time.sleep(0.3)
+    assert len(commands.messages) == count, "no command after the abort"
+    assert not identification.exciting
+    assert "excitation is running" not in refit_answer(ros, probe).message
 
 
 def test_identification_keeps_serving_during_a_refit(ros, monkeypatch):

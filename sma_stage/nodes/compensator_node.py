@@ -21,6 +21,10 @@ and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watch
 feedback mode or with a lag or drift in the model, the last one repeated otherwise. The control period
 1/rate_hz is counted on the node clock with use_sim_time (simulated seconds: the loop acts on the period
 a real stage would have, however fast the simulation runs), else on the steady clock.
+
+Health: /diagnostics at 1 Hz (steady clock); WARN, and a warning in the log, when feedback is on and
+joint_states never came (the command is then the model's alone) or is older than measurement_timeout (the
+command is held), or when targets were beyond the model's reach.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from __future__ import annotations
 import math
 import threading
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -73,6 +78,8 @@ REBUILD_PARAMETERS = (*MODEL_SOURCES, "inverse_method", "max_current")
 TUNINGS = ("imc", "manual")
 PERIOD_SMOOTHING = 0.1  # weight of a new interval in the running mean of the control period
 PERIOD_TOLERANCE = 0.2  # the imc gains are derived again when the period moved by more than this fraction
+
+DIAGNOSTICS_PERIOD_S = 1.0
 
 COMPENSATOR_PARAMS = [
     Param("model_file", "", "model file (YAML from gpi_tool fit/diagnose or ~/refit); empty: the shipped default "
@@ -154,6 +161,9 @@ class CompensatorNode(Node):
         self.create_subscription(JointState, "joint_states", self.on_joint_states, STATE_SUBSCRIBE_QOS)
         self.create_subscription(Float64, "current_applied", self.on_current_applied, COMMAND_QOS)
         self.create_service(Trigger, "~/reload", self.on_reload)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._reported_clipped = 0
+        self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics), clock=self.steady)
         self.period_s = 1.0 / float(self.values["rate_hz"])
         self.create_timer(self.period_s, quiet_on_shutdown(self, self.on_tick), clock=self.control_clock())
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
@@ -336,6 +346,9 @@ class CompensatorNode(Node):
         period (the lead's step)."""
         measured = self.measured_m if self.values["feedback"] else None
         age_s = self.measurement_age_s()
+        if self.values["feedback"] and measured is None:
+            self.warnings.warn("no_measurement", "feedback is on but no joint_states has come: current_cmd "
+                               f"{self.command_a:g} A from the model alone (feedforward)")
         if measured is not None and age_s > float(self.values["measurement_timeout"]):
             self.warnings.warn("stale", f"no joint_states for {age_s:.3g} s (measurement_timeout "
                                f"{self.values['measurement_timeout']:g} s): current_cmd held at {self.command_a:g} A")
@@ -350,6 +363,46 @@ class CompensatorNode(Node):
             self.warnings.warn("clipped", f"target {self.core.target_m:.4g} m is beyond the model's reach within "
                                   f"+-{self.values['max_current']:g} A: current at its limit")
         return current
+
+    def diagnostic_status(self) -> DiagnosticStatus:
+        """The loop's health as one DiagnosticStatus: WARN when feedback is on and joint_states is missing or
+        older than measurement_timeout, or when targets were beyond the model's reach since the last status;
+        else OK (running, waiting for a setpoint, or paused while another node owns current_cmd)."""
+        age_s, timeout = self.measurement_age_s(), float(self.values["measurement_timeout"])
+        clipped = self.clipped_count - self._reported_clipped
+        level, text = DiagnosticStatus.OK, "running"
+        if not self.values["enabled"]:
+            text = "paused: enabled is false (another node owns current_cmd)"
+        elif self.setpoint_m is None:
+            text = "waiting for a setpoint"
+        elif self.values["feedback"] and self.measured_m is None:
+            level, text = DiagnosticStatus.WARN, "feedback is on but no joint_states has come: feedforward only"
+        elif self.values["feedback"] and age_s > timeout:
+            level, text = DiagnosticStatus.WARN, f"no joint_states for {age_s:.3g} s: current_cmd held"
+        elif clipped:
+            level, text = DiagnosticStatus.WARN, f"{clipped} targets beyond the model's reach: current at its limit"
+        values = {
+            "model": self.describe_model(),
+            "setpoint_m": self.setpoint_m if self.setpoint_m is not None else "none",
+            "measured_m": self.measured_m if self.measured_m is not None else "none",
+            "measurement_age_s": round(age_s, 3) if math.isfinite(age_s) else "never",
+            "current_cmd_a": self.command_a,
+            "integral_m": self.core.integral_m,
+            "targets_beyond_reach": self.clipped_count,
+            "feedback": self.values["feedback"],
+            "enabled": self.values["enabled"],
+        }
+        return DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: compensator", message=text,
+                                hardware_id="sma_stage compensator",
+                                values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
+
+    def publish_diagnostics(self) -> None:
+        """Publish the status on /diagnostics."""
+        with self._lock:
+            array = DiagnosticArray(status=[self.diagnostic_status()])
+            self._reported_clipped = self.clipped_count
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(array)
 
     def publish_command(self, current_a: float) -> None:
         """Publish a current command [A]."""

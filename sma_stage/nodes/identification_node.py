@@ -18,6 +18,8 @@ Services (std_srvs/Trigger):
   YAML text) to `<compensator_name>/set_parameters_atomically`, and answers with the JSON report (also on
   `~/report`).
 - `~/clear`: empties the buffer.
+- `~/abort_excitation`: stops a running excitation at once (current_cmd 0 A, the compensator enabled again);
+  refused in one line when none runs. /diagnostics carries the excitation's progress.
 
 The recording is aligned as the offline reader aligns a bag (sma_stage.io.rosbag_io): input held at each
 output time; output times are the JointState header stamps unless they run on another clock.
@@ -306,6 +308,7 @@ class IdentificationNode(Node):
         self.create_subscription(JointState, "joint_states", self.on_joint_states, RECORD_STATE_QOS)
         self.create_service(Trigger, "~/excite", self.on_excite)
         self.create_service(Trigger, "~/clear", self.on_clear)
+        self.create_service(Trigger, "~/abort_excitation", self.on_abort_excitation)
         self.push_client = self.create_client(
             SetParametersAtomically, f"{self.values['compensator_name']}/set_parameters_atomically")
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -385,7 +388,10 @@ class IdentificationNode(Node):
         """The node's state as one DiagnosticStatus: ERROR when recording failed, WARN when the bag writer
         dropped messages, else OK; the recording, the buffer, the excitation and the refit."""
         recorder = self.recorder
-        level, text = DiagnosticStatus.OK, "exciting" if self.exciting else "refitting" if self.refitting else "idle"
+        level, text = DiagnosticStatus.OK, "refitting" if self.refitting else "idle"
+        if self.exciting:
+            duration = float(self.values["excite_duration"])
+            text = f"exciting: {self.signal_time_s():.0f} of {duration:g} s of signal"
         if recorder is not None and recorder.failure is not None:
             level, text = DiagnosticStatus.ERROR, recorder.failure
         elif recorder is not None and recorder.dropped:
@@ -398,6 +404,8 @@ class IdentificationNode(Node):
             "buffer_outputs": len(self.outputs),
             "exciting": self.exciting,
             "excitation_left_s": round(self.excitation_left_s(), 3) if self.exciting else 0.0,
+            "excitation_progress_pct": (round(100.0 * min(self.signal_time_s() / float(self.values["excite_duration"]),
+                                                          1.0), 1) if self.exciting else 0.0),
             "refitting": self.refitting,
         }
         return DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: identification", message=text,
@@ -533,6 +541,21 @@ class IdentificationNode(Node):
                                                 float(self.values["excite_amplitude_end"]),
                                                 float(self.values["excite_period"]), duration)
         self.command_pub.publish(Float64(data=float(value)))
+
+    def on_abort_excitation(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Stop a running excitation now: current_cmd 0 A, the compensator enabled again; the buffer keeps what
+        was recorded and records on (not frozen)."""
+        if not self.exciting:
+            response.success, response.message = False, "no excitation is running"
+            return response
+        done, duration = self.signal_time_s(), float(self.values["excite_duration"])
+        self.command_pub.publish(Float64(data=0.0))
+        self.stop_excitation()
+        response.success = True
+        response.message = (f"excitation aborted after {done:.1f} of {duration:g} s of signal: current_cmd 0 A, "
+                            "current_cmd handed back to the compensator; the buffer keeps what was recorded")
+        self.get_logger().warning(response.message)
+        return response
 
     def stop_excitation(self) -> None:
         """Stop the excitation timer (the current stays at the last value published) and hand current_cmd

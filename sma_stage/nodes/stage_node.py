@@ -188,6 +188,7 @@ class StageNode(LifecycleNode):
         self.published_steps = 0  # steps published: one joint_states and one current_applied each
         self.clamped_count = 0
         self.rejected_count = 0
+        self._reported_counts = (0, 0)  # (clamped, rejected) at the last /diagnostics
         self.faults = 0
         self.warnings = ThrottledWarnings(self)
         self.reading: Reading | None = None
@@ -487,7 +488,11 @@ class StageNode(LifecycleNode):
         self.get_logger().info(f"published {self.published_steps} steps (joint_states and current_applied)")
 
     def diagnostic_status(self) -> DiagnosticStatus:
-        """The stage's health as one DiagnosticStatus (lifecycle, hardware, command age, cycle timing)."""
+        """The stage's health as one DiagnosticStatus (lifecycle, hardware, command age, cycle timing): ERROR on a
+        fault; WARN while stopped or frozen, or when commands were clamped or refused since the last status; OK
+        running or idle (no recent command, the current at zero)."""
+        clamped = self.clamped_count - self._reported_counts[0]
+        rejected = self.rejected_count - self._reported_counts[1]
         level, text = DiagnosticStatus.OK, self.lifecycle
         if self.fault:
             level, text = DiagnosticStatus.ERROR, f"{self.lifecycle}: {self.fault}"
@@ -495,8 +500,12 @@ class StageNode(LifecycleNode):
             level, text = DiagnosticStatus.WARN, "stopped (call ~/resume)"
         elif self.frozen:
             level, text = DiagnosticStatus.WARN, "simulated time frozen (call ~/freeze_time false)"
+        elif clamped or rejected:
+            level = DiagnosticStatus.WARN
+            text = (f"{clamped} commands clamped to +-{self.max_current:g} A" if clamped else
+                    f"{rejected} non-finite commands refused") + " since the last status"
         elif self.watchdog_tripped:
-            level, text = DiagnosticStatus.WARN, "no recent command: current held at zero"
+            text = "idle: no recent command, current at zero"
         elif self.lifecycle == "active":
             text = "running"
         values = {
@@ -524,6 +533,7 @@ class StageNode(LifecycleNode):
     def publish_diagnostics(self) -> None:
         """Publish the status on /diagnostics."""
         array = DiagnosticArray(status=[self.diagnostic_status()])
+        self._reported_counts = (self.clamped_count, self.rejected_count)
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
 
