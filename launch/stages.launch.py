@@ -37,6 +37,8 @@ def stages(context, *_args, **_kwargs) -> list[Node]:
     files = [str(config / "stage.yaml"), str(config / "compensator.yaml")]
     files += [value["params_file"]] if value["params_file"] else []
     sim_time = value["use_sim_time"].lower() in ("true", "1")
+    # time_scale reaches both nodes of the process: the stage runs that fast, and the compensator counts stage
+    # seconds with it (not applied with use_sim_time, where its clock is the stage's)
     overrides = {"backend": "sim", "time_scale": float(value["time_scale"]), "use_sim_time": sim_time}
     return [Node(package="sma_stage", executable="stage_and_compensator", namespace=f"stage_{index}", parameters=[*files, {**overrides, "seed": index}],
                  remappings=[("/clock", "clock")], output="screen")

@@ -3,7 +3,10 @@ namespaced simulated stage on sim time, excite, refit, send a setpoint, read the
 Prints one line per step and exits 1 when one fails. Not a test of the suite: it needs `ros2` with
 `ros2 launch` (tools/ros2launch_venv.sh) and the package built with colcon on AMENT_PREFIX_PATH.
 
-    python tools/launch_user_story.py --out /tmp/story [--namespace stage2] [--time-scale 25]
+    python tools/launch_user_story.py --out /tmp/story [--namespace stage2] [--time-scale 25] [--wall-clock]
+
+--wall-clock runs without use_sim_time: the simulator time_scale times faster than the wall clock, every node
+counting stage seconds through its time_scale.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--namespace", default="stage2")
     parser.add_argument("--time-scale", type=float, default=25.0)
+    parser.add_argument("--wall-clock", action="store_true", help="without use_sim_time")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     params = args.out / "story_params.yaml"
@@ -58,7 +62,7 @@ def main() -> int:
     ns = "/" + args.namespace.strip("/")
     log = (args.out / "launch.log").open("w")
     launch = subprocess.Popen(
-        ["ros2", "launch", "sma_stage", "stage.launch.py", f"namespace:={args.namespace}", "use_sim_time:=true",
+        ["ros2", "launch", "sma_stage", "stage.launch.py", f"namespace:={args.namespace}", f"use_sim_time:={str(not args.wall_clock).lower()}",
          f"time_scale:={args.time_scale}", f"record_bag:={args.out / 'bag'}", f"params_file:={params}"],
         stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"},
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # a shell's background job ignores it

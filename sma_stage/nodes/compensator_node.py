@@ -20,7 +20,10 @@ command saturates in the direction of the error (anti-windup). A command is publ
 and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog): computed again in
 feedback mode or with a lag or drift in the model, the last one repeated otherwise. The control period
 1/rate_hz is counted on the node clock with use_sim_time (simulated seconds: the loop acts on the period
-a real stage would have, however fast the simulation runs), else on the steady clock.
+a real stage would have, however fast the simulation runs), else on the steady clock. Every time the control
+law sees is stage time: simulated seconds with use_sim_time, else node-clock seconds times `time_scale` (the
+stage's time_scale when a simulated stage runs faster than the wall clock without use_sim_time: the model's
+time constants are the stage's).
 
 Health: /diagnostics at 1 Hz (steady clock); WARN, and a warning in the log, when feedback is on and
 joint_states never came (the command is then the model's alone) or is older than measurement_timeout (the
@@ -92,7 +95,7 @@ COMPENSATOR_PARAMS = [
     Param("feedback", True, "close a PI loop on the measured position from joint_states"),
     Param("tuning", "imc", "PI gains: 'imc' (derived from the model in force and rate_hz) or 'manual' (kp, ki)"),
     Param("kp", 1.0, "proportional gain on the position error [m/m] (tuning manual)", 0.0, 100.0),
-    Param("ki", 0.1, "integral gain on the position error [1/s of node-clock time] (tuning manual)", 0.0, 10000.0),
+    Param("ki", 0.1, "integral gain on the position error [1/s of stage time] (tuning manual)", 0.0, 10000.0),
     Param("lead_limit", DEFAULT_LEAD_LIMIT, "largest gain of the thermal-lag lead in the PI loop [A/A]", 1.0, 1e6),
     Param("feedforward_lead_limit", DEFAULT_FEEDFORWARD_LEAD_LIMIT, "largest gain of the thermal-lag lead in "
           "feedforward (feedback false) while the setpoint moves continuously [A/A]", 1.0, 1e6),
@@ -100,11 +103,14 @@ COMPENSATOR_PARAMS = [
           "setpoint and while it holds [A/A] (1: no overshoot of the current)", 1.0, 1e6),
     Param("deadband", DEFAULT_DEADBAND_M, "half-width of the play on the loop's target [m] (a few sensor noise "
           "sigmas)", 0.0, 1e-2),
-    Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of node-clock time]; "
+    Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of stage time]; "
           "0: no limit", 0.0, 1e6),
     Param("measurement_timeout", 1.0, "feedback: hold current_cmd while the latest joint_states is older than this "
           "[s, steady clock] (the stage stopped publishing)", 0.001, 3600.0),
     Param("rate_hz", 50.0, "command republication and PI loop rate [Hz; of simulated time with use_sim_time]", 0.1, 2000.0, read_only=True),
+    Param("time_scale", 1.0, "stage seconds per node-clock second: the stage's time_scale when it runs faster than "
+          "the wall clock without use_sim_time (not applied with use_sim_time); the model, the lead, the PI loop "
+          "and the rate limit count stage seconds", 0.001, 10000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
 
@@ -140,7 +146,10 @@ class CompensatorNode(Node):
         self._lock = threading.RLock()
         try:
             self.values = declare_all(self, COMPENSATOR_PARAMS)
-            self.period_estimate_s = self.tuned_period_s = 1.0 / float(self.values["rate_hz"])
+            # with use_sim_time the node clock is the stage's: time_scale (shared with the stage in
+            # stage_and_compensator) is not applied
+            self.time_scale = 1.0 if self.get_parameter("use_sim_time").value else float(self.values["time_scale"])
+            self.period_estimate_s = self.tuned_period_s = self.time_scale / float(self.values["rate_hz"])
             model, self.model_source = model_from(self.values)
             self.core = self.build_core(model, self.values)
         except InputError:
@@ -282,7 +291,7 @@ class CompensatorNode(Node):
             previous_ns, self._last_applied_ns = self._last_applied_ns, now_ns
             if self.setpoint_m is not None and self.values["enabled"] or not math.isfinite(value):
                 return
-            dt_s = max((now_ns - previous_ns) * 1e-9, 0.0) if previous_ns is not None else 0.0
+            dt_s = max((now_ns - previous_ns) * 1e-9, 0.0) * self.time_scale if previous_ns is not None else 0.0
             self.core.follow_applied(value, dt_s)
             self._last_step_ns = now_ns
 
@@ -305,7 +314,7 @@ class CompensatorNode(Node):
             now_ns = self.get_clock().now().nanoseconds
             previous_ns, self._last_tick_ns = self._last_tick_ns, now_ns
             if previous_ns is not None and now_ns > previous_ns:
-                self.follow_control_period((now_ns - previous_ns) * 1e-9)
+                self.follow_control_period((now_ns - previous_ns) * 1e-9 * self.time_scale)
             if self.setpoint_m is None or not self.values["enabled"]:
                 return
             if self.values["feedback"] or self.core.drive.evolves:
@@ -314,8 +323,8 @@ class CompensatorNode(Node):
                 self.publish_command(self.command_a)
 
     def follow_control_period(self, dt_s: float) -> None:
-        """Keep a running mean of the node-clock time between ticks [s] (simulated seconds with
-        use_sim_time); with tuning imc, derive the gains
+        """Keep a running mean of the stage time between ticks [s] (simulated seconds with use_sim_time, else
+        node-clock seconds times time_scale); with tuning imc, derive the gains
         again when it has moved by more than PERIOD_TOLERANCE from the period they were derived for."""
         self.period_estimate_s += PERIOD_SMOOTHING * (min(dt_s, 10.0 * self.period_estimate_s) - self.period_estimate_s)
         if self.values["tuning"] != "imc" or abs(self.period_estimate_s / self.tuned_period_s - 1.0) <= PERIOD_TOLERANCE:
@@ -323,17 +332,17 @@ class CompensatorNode(Node):
         self.tuned_period_s = self.period_estimate_s
         for name, value in imc_gains(self.model, self.tuned_period_s, self.core.lead_limit).items():
             setattr(self.core, name, value)
-        self.get_logger().info(f"control period {self.tuned_period_s:.3g} s of node-clock time: "
+        self.get_logger().info(f"control period {self.tuned_period_s:.3g} s of stage time: "
                                f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s (imc)")
 
     def elapsed_s(self) -> float:
-        """Node-clock seconds since the previous command computed, 0 for the first (simulated time with
-        use_sim_time)."""
+        """Stage seconds since the previous command computed, 0 for the first (simulated time with
+        use_sim_time, else node-clock seconds times time_scale)."""
         now_ns = self.get_clock().now().nanoseconds
         previous_ns, self._last_step_ns = self._last_step_ns, now_ns
         if previous_ns is None:
             return 0.0
-        return max((now_ns - previous_ns) * 1e-9, 0.0)
+        return max((now_ns - previous_ns) * 1e-9, 0.0) * self.time_scale
 
     def measurement_age_s(self) -> float:
         """Steady-clock seconds since the latest usable joint_states (inf before the first)."""

@@ -7,7 +7,8 @@ Services (std_srvs/Trigger):
 - `~/excite`: publish A(t) sin(2 pi t / excite_period) on current_cmd, A falling linearly from
   excite_amplitude_start to excite_amplitude_end over excite_duration [s of signal time]; returns at once.
   Signal time = node-clock time since the start times excite_time_scale (set it to the stage's time_scale
-  when the stage runs faster than real time without use_sim_time; with use_sim_time keep 1).
+  when the stage runs faster than real time without use_sim_time; with use_sim_time keep 1). The recording's
+  time axis is scaled the same way: the model refitted counts stage seconds, as the compensator does.
 - `~/refit`: refused at once (success=false, one-line reason) while an excitation runs, while another refit
   runs, or when the recording cannot support a fit. Otherwise runs the identification pipeline
   (sma_stage.identify.pipeline.identify_recording): fits the first (1 - holdout_fraction) of the
@@ -110,8 +111,9 @@ IDENTIFICATION_PARAMS = [
     Param("excite_period", 250.0, "identification signal period [s of signal time]", 0.001, 1e6),
     Param("excite_duration", 1000.0, "identification signal length [s of signal time]", 0.001, 1e7),
     Param("excite_rate_hz", 50.0, "identification signal publication rate [Hz]", 1.0, 2000.0),
-    Param("excite_time_scale", 1.0, "signal seconds per node-clock second (the stage's time_scale without "
-          "use_sim_time)", 0.001, 10000.0),
+    Param("excite_time_scale", 1.0, "stage seconds per node-clock second (the stage's time_scale without "
+          "use_sim_time; 1 with it): the excitation's signal time and the recording's time axis, so that the "
+          "model refitted counts stage seconds", 0.001, 10000.0),
     Param("clear_on_excite", True, "empty the buffer when ~/excite starts, so a refit sees only the excitation"),
     Param("freeze_after_excite", True, "stop filling the buffer when an excitation ends (until ~/clear or "
           "~/excite), so a refit sees only the excitation; the bag records on"),
@@ -123,8 +125,9 @@ IDENTIFICATION_PARAMS = [
 
 
 def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, int, float]],
-                     min_samples: int, input_topic: str = "current_applied") -> Series:
-    """The checked Series (t [s], input [A], output [m]) of a recording; InputError saying what is missing."""
+                     min_samples: int, input_topic: str = "current_applied", time_scale: float = 1.0) -> Series:
+    """The checked Series (t [s of stage time: node-clock seconds times time_scale], input [A], output [m]) of a
+    recording; InputError saying what is missing."""
     if not inputs:
         raise InputError(f"no messages on {input_topic} were recorded: is anything publishing it?")
     if not outputs:
@@ -136,7 +139,7 @@ def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, i
                                     positions.astype(float))
     if t.size == 0:
         raise InputError(f"no joint_states message came at or after the first {input_topic} message")
-    return make_series(t, u, y, "recording", min_samples=min_samples)
+    return make_series(t * time_scale, u, y, "recording", min_samples=min_samples)
 
 
 def report_json(report: dict) -> str:
@@ -607,7 +610,8 @@ class IdentificationNode(Node):
         """The recording so far, aligned as a bag of it would be, with at least min_samples samples."""
         with self._lock:
             inputs, outputs = list(self.inputs), list(self.outputs)
-        return recording_series(inputs, outputs, min_samples, str(self.values["input_topic"]))
+        return recording_series(inputs, outputs, min_samples, str(self.values["input_topic"]),
+                                float(self.values["excite_time_scale"]))
 
     def on_refit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the recording (in the refit worker thread) and answer with the JSON report."""
