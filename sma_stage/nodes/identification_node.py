@@ -100,7 +100,7 @@ IDENTIFICATION_PARAMS = [
     Param("pause_compensator", True, "set the compensator's enabled false while ~/excite drives the stage, so "
           "one node at a time owns current_cmd"),
     Param("record_bag", "", "rosbag2 directory to record input_topic and joint_states into; empty: none"),
-    Param("bag_storage", "sqlite3", f"rosbag2 storage: {' or '.join(STORAGES)}"),
+    Param("bag_storage", "mcap", f"rosbag2 storage: {' or '.join(STORAGES)} (mcap: Foxglove and PlotJuggler open it)"),
     Param("bag_overwrite", False, "replace an existing record_bag directory (when the bag is finished)"),
     Param("excite_signal", "paper", "identification signal: paper (the decaying sine) or designed (each wire's "
           "excursions to many peaks and reversal levels with holds, up to excite_amplitude_start; see gpi_tool "
