@@ -92,15 +92,22 @@ def build_parser() -> argparse.ArgumentParser:
                           help="processes fitting a round's candidates at once (default: one per CPU; the "
                                "result is the same for any count)")
     diagnose.add_argument("--families", type=family_list, default=("gpi",),
-                          help="model families compared, comma-separated: gpi (the default, what ~/refit fits and "
-                               "the compensator node runs), two_wire; the one with the lowest validation error (BIC "
-                               "between those within 5 %%) is written as model.yaml")
+                          help="model families compared, comma-separated: gpi (the default), two_wire; the one "
+                               "with the lowest validation error (BIC between those within 5 %%) is written as "
+                               "model.yaml")
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))
     excitation = commands.add_parser("excitation", help="write an identification current signal (t,input CSV)")
     from sma_stage.commands.excitation import add_arguments as excitation_arguments
 
     excitation_arguments(excitation)
     excitation.set_defaults(handler=run_excitation)
+    plot = commands.add_parser("plot", help="draw a recording's loop, time series and residual to PNG")
+    plot.add_argument("data", type=Path, metavar="DATA", help="CSV file (t,input,output) or rosbag2 directory")
+    plot.add_argument("--model", type=Path, help="model file: its prediction (from rest) and the residual are drawn")
+    add_reading_arguments(plot, "current_applied")
+    plot.add_argument("--out", type=Path, default=Path("out/plot"), help="folder for the PNGs (default out/plot)")
+    plot.add_argument("--json", action="store_true", help="print what was written as JSON")
+    plot.set_defaults(handler=run_plot)
     simulate = commands.add_parser("simulate", help="run the stage simulator offline and write a CSV")
     from sma_stage.commands.simulate import add_arguments
 
@@ -119,13 +126,19 @@ def add_data_arguments(parser: argparse.ArgumentParser, validate_required: bool)
                                  "(as ~/refit does with its holdout_fraction)")
     parser.add_argument("--operators", type=operator_count, default=None,
                         help="operator count (default: chosen from the data)")
+    add_reading_arguments(parser, "current_cmd")
+    parser.add_argument("--out", type=Path, default=Path("out/identification"), help="folder for the results")
+    parser.add_argument("--json", action="store_true", help="print the JSON report (and nothing else) on stdout")
+
+
+def add_reading_arguments(parser: argparse.ArgumentParser, input_topic: str) -> None:
+    """How to read DATA: CSV column names, bag topics, joint name, the output's unit."""
     parser.add_argument("--columns", help='CSV column names, e.g. "t=time,input=current,output=pos" (t= for index)')
-    parser.add_argument("--input-topic", default="current_cmd", help="bag topic of the input (std_msgs/Float64)")
+    parser.add_argument("--input-topic", default=input_topic,
+                        help=f"bag topic of the input (std_msgs/Float64; default {input_topic})")
     parser.add_argument("--output-topic", default="joint_states", help="bag topic of the output (JointState)")
     parser.add_argument("--joint", default="stage_x", help="joint name in the JointState messages")
     parser.add_argument("--unit", default="m", help="unit of the output column (default m)")
-    parser.add_argument("--out", type=Path, default=Path("out/identification"), help="folder for the results")
-    parser.add_argument("--json", action="store_true", help="print the JSON report (and nothing else) on stdout")
 
 
 def run_identify_command(name: str):
@@ -155,6 +168,16 @@ def run_excitation(args: argparse.Namespace) -> dict:
     if not args.json:
         print(f"wrote {report['samples']} samples of the {report['kind']} excitation to {report['file']}",
               file=sys.stderr)
+    return report
+
+
+def run_plot(args: argparse.Namespace) -> dict:
+    """gpi_tool plot."""
+    from sma_stage.commands.plot import run_plot as plot_command
+
+    report = plot_command(args)
+    if not args.json:
+        print(f"wrote {', '.join(report['files'])}", file=sys.stderr)
     return report
 
 

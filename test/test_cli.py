@@ -348,3 +348,26 @@ def test_a_record_too_large_for_the_free_memory_is_refused_before_it_is_read(dat
     assert re.fullmatch(r"gpi_tool: error: the records hold about \d+ rows: the fit needs about [0-9.]+ GiB and "
                         r"0\.1 GiB are free .*", error), error
     assert not (tmp_path / "out").exists()
+
+
+def test_plot_draws_a_bag_and_a_model_and_refuses_a_bad_model_in_one_line(tmp_path, capsys):
+    """gpi_tool plot on a bag the identification node recorded, with a model: the loop, the time series and the
+    residual as PNG, the residual's size in the JSON; a bad model file ends with one line and no folder."""
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "plots"
+    assert main(["plot", str(repo / "test" / "data" / "excitation_mcap"), "--input-topic", "current_cmd",
+                 "--model", str(repo / "config" / "model_default.yaml"), "--out", str(out), "--json"]) == 0
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
+    assert captured.err == "", "no warning from matplotlib or anything else"
+    assert sorted(path.name for path in out.glob("*.png")) == ["loop.png", "residual.png", "time_series.png"]
+    assert all(path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for path in out.glob("*.png"))
+    assert report["samples"] > 200 and 0.0 < report["residual"]["rms_pct"] < 100.0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("kind: gpi\noperators: 10\nparameters: {a1: 1.0}\n")
+    assert main(["plot", str(repo / "test" / "data" / "excitation_mcap"), "--input-topic", "current_cmd",
+                 "--model", str(bad), "--out", str(tmp_path / "none")]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and str(bad) in error[0] and not (tmp_path / "none").exists()
