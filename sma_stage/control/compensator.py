@@ -33,8 +33,8 @@ then feedforward_lead_limit (10) applies. The windows make it indifferent to whe
 arrives (a stream published slower than the loop, or in bursts, still moves), as long as it comes at
 least every half second. After a step, at a reversal and while the setpoint holds,
 feedforward_step_lead_limit (1: no overshoot; the lag's state approaches v* with tau) applies.
-The defaults (3 in the loop, 10 and 1 in feedforward, 1 A/s) and the scans behind them are in
-bench/README.md: in the loop a limit of 10 made the stage limit-cycle around a held setpoint (9-14 um RMS
+The defaults (3 in the loop, 10 and 1 in feedforward, 1 A/s) come from scans with bench/bench_tracking.py
+(their tables: bench/README.md at commit b315809): in the loop a limit of 10 made the stage limit-cycle around a held setpoint (9-14 um RMS
 against 0.8-1.4 um at 3), and 5 did at a rate limit of 0.5 A/s.
 
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
@@ -104,7 +104,7 @@ MOTION_WINDOW_S = 1.0  # a moving setpoint's change is compared over two windows
 MOVING_RATE_RATIO = 2.0  # and agrees within this factor
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
-LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (bench/README.md)
+LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (scan: bench/README.md at b315809)
 
 
 def checked_gains(kp: float, ki: float) -> dict[str, float]:
