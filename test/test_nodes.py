@@ -928,6 +928,40 @@ def refit_answer(ros: Ros, probe: Node):
     return ros.call(probe, Trigger, "identification/refit", timeout=120.0)  # a refit with its diagnosis: 10-40 s on two loaded cores
 
 
+def test_the_model_watch_publishes_the_residual_and_flags_a_stage_that_moved(ros):
+    """The compensator publishes its model; the identification node runs it on the applied current against
+    joint_states: a stage that behaves as the model says stays `ok` (the residual a fraction of a per cent of the
+    span: the one-message misalignment of two topics), a stage 20 % of its span away is flagged `drift`, WARN."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from sma_stage.model import forward
+
+    compensator_node(ros, rate_hz=2.0)
+    identification = identification_node(ros, watch_window=1.0, watch_calibration_windows=2)
+    fake = FakeStage(ros, identification)
+    residuals = Listener(fake.node, JointState, "identification/residual", 1000)
+    diagnostics = Listener(fake.node, DiagnosticArray, "/diagnostics")
+    wait_until(lambda: identification.watch.watch is not None, 5.0, "the compensator's model at the watch")
+
+    def watch_statuses() -> list:
+        return [st for array in diagnostics.messages for st in array.status if st.name.endswith("model watch")]
+
+    currents = 4.0 * np.sin(2 * np.pi * np.arange(3000) / 1000.0)
+    positions = forward(currents, DEFAULT_PARAMS, OPERATORS)
+    span = float(np.ptp(positions))
+    fake.publish(currents[:2000], positions[:2000])
+    wait_until(lambda: len(residuals.messages) > 1500, 5.0, "the residual on ~/residual")
+    values = np.array([message.position[0] for message in residuals.messages])
+    assert np.sqrt(np.mean(values**2)) < 0.01 * span and residuals.messages[-1].header.stamp.sec > 0
+    wait_until(lambda: any(st.message.startswith("the model in force") for st in watch_statuses()), 5.0, "ok")
+    assert watch_statuses()[-1].level == DiagnosticStatus.OK
+    fake.publish(currents[2000:], positions[2000:] + 0.2 * span)
+    wait_until(lambda: identification.watch.state() == "drift", 5.0, "drift")
+    wait_until(lambda: watch_statuses()[-1].level == DiagnosticStatus.WARN, 5.0, "WARN on /diagnostics")
+    assert {value.key for value in watch_statuses()[-1].values} >= {"state", "residual_rms_m", "drift_statistic",
+                                                                     "drift_threshold", "model_age_s", "model_source"}
+
+
 def test_identification_refuses_a_refit_without_enough_data(ros):
     identification = identification_node(ros, min_samples=50, push_timeout=0.1)
     fake = FakeStage(ros, identification)

@@ -139,7 +139,7 @@ def run_diagnose(args: argparse.Namespace) -> dict:
 def write_outputs(folder: Path, found: Identification, title: str) -> None:
     """model.yaml (the identified model), report.json and report.md into folder."""
     found.model.save(folder / "model.yaml")
-    if found.gpi_model is not None and found.gpi_model is not found.model:
+    if found.gpi_model is not None:
         found.gpi_model.save(folder / GPI_MODEL_FILE)
     write_json(folder / "report.json", found.report)
     atomic_write_text(folder / "report.md", markdown_summary(found.report, title))

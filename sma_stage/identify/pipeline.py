@@ -92,10 +92,26 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
             model = replace(chosen, state=chosen.run(continued.t, continued.input)[1], metadata=metadata)
     if found is not None:
         report["diagnosis"] = found.to_dict()
+    held_out = deployed_held_out(report)
+    if held_out is not None and valid is not None:
+        span = float(np.ptp(valid.output[scored_from:]))
+        model = replace(model, metadata={**model.metadata, "held_out_rms": held_out["rms_pct"] / 100.0 * span,
+                                         "output_span": float(np.ptp(record.output))})
     report["identified_model"] = model.without_state().to_dict()
     report["compensation"] = compensation_notes(model)
     report["warnings"] = list(warnings)
-    return Identification(model, fit, found, report, warnings, valid, scored_from, gpi_model)
+    return Identification(model, fit, found, report, warnings, valid, scored_from,
+                          gpi_model if isinstance(model, TwoWireModel) else None)
+
+
+def deployed_held_out(report: dict) -> dict | None:
+    """The held-out errors (rms_pct, max_pct [% of the held-out span]) of the model a report deploys: the chosen
+    family's, else the diagnosed model's, else the plain fit's; None without validation data."""
+    chosen = [row for row in report.get("families", ()) if row["chosen"]]
+    if chosen:
+        return chosen[0]["validation"]
+    diagnosis = report.get("diagnosis")
+    return diagnosis["after"]["validation"] if diagnosis is not None else report.get("validation")
 
 
 def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics,

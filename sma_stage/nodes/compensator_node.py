@@ -42,7 +42,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from sma_stage.control import Compensator
@@ -63,6 +63,7 @@ from sma_stage.model.inverse import METHODS
 from sma_stage.nodes._common import (
     COMMAND_QOS,
     JOINT_NAME,
+    REPORT_QOS,
     STATE_SUBSCRIBE_QOS,
     Param,
     ThrottledWarnings,
@@ -74,6 +75,7 @@ from sma_stage.nodes._common import (
     run_node,
 )
 from sma_stage.nodes.launch import CONFIG_DIR
+from sma_stage.nodes.model_watch import model_message
 
 DEFAULT_MODEL_FILE = CONFIG_DIR / "model_default.yaml"
 MODEL_SOURCES = ("model_file", "model")
@@ -170,6 +172,8 @@ class CompensatorNode(Node):
         self.create_subscription(JointState, "joint_states", self.on_joint_states, STATE_SUBSCRIBE_QOS)
         self.create_subscription(Float64, "current_applied", self.on_current_applied, COMMAND_QOS)
         self.create_service(Trigger, "~/reload", self.on_reload)
+        self.model_pub = self.create_publisher(String, "~/model", REPORT_QOS)
+        self.publish_model()
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._reported_clipped = 0
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics), clock=self.steady)
@@ -241,6 +245,7 @@ class CompensatorNode(Node):
             self.values = candidate
             if rebuild:
                 self.core, self.model_source = core, source
+                self.publish_model()
             else:
                 for name, value in settings.items():
                     setattr(self.core, name, value)
@@ -262,6 +267,7 @@ class CompensatorNode(Node):
             else:
                 with self._lock:
                     self.core, self.model_source = core, path
+                self.publish_model()
                 response.success, response.message = True, f"reloaded {path}"
         if response.success:
             self.get_logger().info(f"~/reload: {response.message}")
@@ -412,6 +418,10 @@ class CompensatorNode(Node):
             self._reported_clipped = self.clipped_count
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
+
+    def publish_model(self) -> None:
+        """Publish the model in force and its source on ~/model (transient local: the model watch reads it)."""
+        self.model_pub.publish(model_message(self.model.to_yaml_text(), self.model_source))
 
     def publish_command(self, current_a: float) -> None:
         """Publish a current command [A]."""

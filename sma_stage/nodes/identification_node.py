@@ -19,6 +19,12 @@ Services (std_srvs/Trigger):
   YAML text) to `<compensator_name>/set_parameters_atomically`, and answers with the JSON report (also on
   `~/report`).
 - `~/clear`: empties the buffer.
+
+The model watch (`watch`, sma_stage.nodes.model_watch): the model the compensator publishes on
+`<compensator_name>/model` is run from rest on the applied current and compared with joint_states;
+`~/residual` (sensor_msgs/JointState, the joint's position = measured - predicted [m], stamped as the
+position) and a `/diagnostics` status `<node>: model watch` (state ok, drift, no_model or no_data; WARN on
+drift) say how well it predicts the stage (sma_stage.identify.watch: the drift test).
 - `~/abort_excitation`: stops a running excitation at once (current_cmd 0 A, the compensator enabled again);
   refused in one line when none runs. /diagnostics carries the excitation's progress.
 
@@ -51,7 +57,8 @@ from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
 from sma_stage.identify.families import check_families
-from sma_stage.identify.pipeline import identify_recording
+from sma_stage.identify.pipeline import deployed_held_out, identify_recording
+from sma_stage.identify.watch import DriftTest
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import strict_json
@@ -72,6 +79,7 @@ from sma_stage.nodes._common import (
     quiet_on_shutdown,
     run_node,
 )
+from sma_stage.nodes.model_watch import WATCH_PERIOD_S, WatchChannel
 from sma_stage.signals import designed_identification_signal, paper_identification_signal
 
 EXCITATIONS = ("paper", "designed")
@@ -118,6 +126,16 @@ IDENTIFICATION_PARAMS = [
     Param("freeze_after_excite", True, "stop filling the buffer when an excitation ends (until ~/clear or "
           "~/excite), so a refit sees only the excitation; the bag records on"),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
+    Param("watch", True, "watch the compensator's model against the stage: ~/residual and a /diagnostics status",
+          read_only=True),
+    Param("watch_window", 20.0, "the watch's window [s of stage time]: the residual's RMS per window feeds the drift "
+          "test", 1.0, 3600.0, read_only=True),
+    Param("watch_allowance", 1.5, "windows up to this times the reference residual count as no change", 1.0, 100.0,
+          read_only=True),
+    Param("watch_threshold", 1.5, "drift when the CUSUM of ln(window RMS / (allowance x reference)) exceeds this",
+          0.1, 100.0, read_only=True),
+    Param("watch_calibration_windows", 3, "windows after a model goes in force that measure its reference level",
+          1, 1000, read_only=True),
     Param("input_topic", "current_applied", "std_msgs/Float64 topic of the current recorded and fitted [A]: what "
           "the stage applied (current_cmd for a stage that does not publish it, or a bag of commands)",
           read_only=True),
@@ -316,6 +334,13 @@ class IdentificationNode(Node):
             SetParametersAtomically, f"{self.values['compensator_name']}/set_parameters_atomically")
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics))
+        self.watch: WatchChannel | None = None
+        if self.values["watch"]:
+            test = DriftTest(float(self.values["watch_window"]), float(self.values["watch_allowance"]),
+                             float(self.values["watch_threshold"]), int(self.values["watch_calibration_windows"]))
+            self.watch = WatchChannel(self, str(self.values["compensator_name"]), test,
+                                      float(self.values["excite_time_scale"]), str(self.values["joint_name"]))
+            self.create_timer(WATCH_PERIOD_S, quiet_on_shutdown(self, self.watch.run))
         self.refit_service = WorkerService(self, Trigger, "refit", self.on_refit)
         self.get_logger().info("identification ready"
                                + (f", recording into {self.recorder.path}" if self.recorder else ""))
@@ -417,7 +442,8 @@ class IdentificationNode(Node):
 
     def publish_diagnostics(self) -> None:
         """Publish the status on /diagnostics."""
-        array = DiagnosticArray(status=[self.diagnostic_status()])
+        statuses = [self.diagnostic_status()] + ([self.watch.diagnostic_status()] if self.watch is not None else [])
+        array = DiagnosticArray(status=statuses)
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
 
@@ -433,6 +459,8 @@ class IdentificationNode(Node):
         with self._lock:
             if self.record_until_ns is None or receive_ns <= self.record_until_ns:
                 self.inputs.append((receive_ns, value))
+        if self.watch is not None:
+            self.watch.add_input(receive_ns, value)
         recorder = self.recorder
         if recorder is not None:
             recorder.write_input(receive_ns, value)
@@ -449,6 +477,8 @@ class IdentificationNode(Node):
         with self._lock:
             if self.recording_output(receive_ns, stamp_ns):
                 self.outputs.append((receive_ns, stamp_ns, position))
+        if self.watch is not None:
+            self.watch.add_output(receive_ns, stamp_ns, position)
         recorder = self.recorder
         if recorder is not None:
             recorder.write_output(stamp_ns, position, velocity, receive_ns)
@@ -667,11 +697,7 @@ class IdentificationNode(Node):
 
     def check_held_out(self, report: dict, series: Series) -> None:
         """InputError when the model to deploy misses the held-out tail by more than max_held_out_rms_pct."""
-        diagnosis = report.get("diagnosis")
-        held_out = (diagnosis["after"]["validation"] if diagnosis is not None else report["validation"]) or {}
-        chosen = [row for row in report.get("families", ()) if row["chosen"]]
-        if chosen:
-            held_out = chosen[0]["validation"] or {}
+        held_out = deployed_held_out(report) or {}
         rms_pct, limit = held_out.get("rms_pct"), float(self.values["max_held_out_rms_pct"])
         if rms_pct is not None and rms_pct > limit:
             raise InputError(f"the model misses the held-out tail by {rms_pct:.3g} % RMS, more than "

@@ -1,0 +1,154 @@
+"""The identification node's watch of the model in force (sma_stage.identify.watch): it takes the model the
+compensator publishes on `<compensator>/model`, runs it on the applied current from rest, publishes the
+residual on `~/residual` and its state on /diagnostics."""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections import deque
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.time import Time
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+
+from sma_stage.errors import InputError
+from sma_stage.identify.watch import DriftTest, ModelWatch
+from sma_stage.io.rosbag_io import output_times
+from sma_stage.model.identified import any_model_from_yaml_text
+from sma_stage.nodes._common import REPORT_QOS, STATE_PUBLISH_QOS
+
+WATCH_PERIOD_S = 0.2  # the queued samples are run through the model this often
+QUEUE_LENGTH = 100_000  # samples kept for the watch between two runs [messages per topic]
+
+
+def model_message(model_yaml: str, source: str) -> String:
+    """What the compensator publishes on ~/model: the model in force and where it came from, as JSON."""
+    return String(data=json.dumps({"source": source, "model": model_yaml}))
+
+
+class WatchChannel:
+    """The watch's inputs, its model and its outputs, for one node (`owner`): time_scale gives stage seconds
+    per node-clock second; joint_name the joint of joint_states."""
+
+    def __init__(self, owner: Node, compensator: str, test: DriftTest, time_scale: float, joint_name: str) -> None:
+        self.owner, self.test, self.time_scale, self.joint_name = owner, test, time_scale, joint_name
+        self._lock = threading.Lock()
+        self._inputs: deque[tuple[int, float]] = deque(maxlen=QUEUE_LENGTH)
+        self._outputs: deque[tuple[int, int, float]] = deque(maxlen=QUEUE_LENGTH)
+        self._last_input: tuple[int, float] | None = None
+        self.watch: ModelWatch | None = None
+        self.source = "none"
+        self.since_ns: int | None = None
+        self.last_sample_ns: int | None = None
+        self._reported_state = "no_model"
+        self.residual_pub = owner.create_publisher(JointState, "~/residual", STATE_PUBLISH_QOS)
+        owner.create_subscription(String, f"{compensator.rstrip('/')}/model", self.on_model, REPORT_QOS)
+
+    def on_model(self, message: String) -> None:
+        """A new model in force: the watch starts again with it (a bad message is logged and ignored)."""
+        try:
+            document = json.loads(message.data)
+            model = any_model_from_yaml_text(str(document["model"]))
+        except (InputError, ValueError, KeyError, TypeError) as error:
+            self.owner.get_logger().warning(f"model watch: the compensator's model cannot be read: {error}")
+            return
+        with self._lock:
+            self.watch = ModelWatch(model, self.test)
+            self.source = str(document.get("source", "unknown"))
+            self.since_ns = self.owner.get_clock().now().nanoseconds
+            self._outputs.clear()
+        self.owner.get_logger().info(f"model watch: watching the model from {self.source}")
+
+    def add_input(self, receive_ns: int, value: float) -> None:
+        with self._lock:
+            self._inputs.append((receive_ns, value))
+
+    def add_output(self, receive_ns: int, stamp_ns: int, position: float) -> None:
+        with self._lock:
+            if self.watch is not None:
+                self._outputs.append((receive_ns, stamp_ns, position))
+
+    def run(self) -> None:
+        """Run the queued positions through the model and publish their residuals."""
+        with self._lock:
+            watch, outputs = self.watch, list(self._outputs)
+            inputs = ([self._last_input] if self._last_input is not None else []) + list(self._inputs)
+            self._outputs.clear()
+            self._inputs.clear()
+            if inputs:
+                self._last_input = inputs[-1]
+        if watch is None or not outputs or not inputs:
+            return
+        receive_ns, stamp_ns, positions = (np.array(column) for column in zip(*outputs, strict=True))
+        times_ns = output_times(receive_ns.astype(np.int64), stamp_ns.astype(np.int64))
+        order = np.argsort(times_ns, kind="stable")
+        times_ns, positions = times_ns[order], positions[order]
+        input_ns, values = (np.array(column) for column in zip(*inputs, strict=True))
+        in_order = np.argsort(input_ns, kind="stable")
+        latest = np.searchsorted(input_ns[in_order], times_ns, side="right") - 1  # the current held then
+        usable = (latest >= 0) & (np.append(np.diff(times_ns) > 0, True))
+        if self.last_sample_ns is not None:
+            usable &= times_ns > self.last_sample_ns
+        if not usable.any():
+            return
+        kept_ns, measured = times_ns[usable], positions[usable].astype(float)
+        held = values[in_order][latest[usable]].astype(float)
+        residual = watch.step(kept_ns * 1e-9 * self.time_scale, held, measured)
+        self.last_sample_ns = int(kept_ns[-1])
+        for time_ns, value in zip(kept_ns, residual, strict=True):
+            message = JointState(name=[self.joint_name], position=[float(value)])
+            message.header.stamp = Time(nanoseconds=int(time_ns)).to_msg()
+            self.residual_pub.publish(message)
+        self._log_change(watch)
+
+    def _log_change(self, watch: ModelWatch) -> None:
+        state = watch.state
+        if state != self._reported_state:
+            if state == "drift":
+                self.owner.get_logger().warning(
+                    f"model watch: drift: the residual's RMS {watch.last_window_rms:.3g} m is above "
+                    f"{self.test.allowance:g} x its reference {watch.cusum.reference:.3g} m long enough "
+                    f"(statistic {watch.cusum.statistic:.3g} > {self.test.threshold:g}): the model in force "
+                    "no longer describes the stage")
+            self._reported_state = state
+
+    def state(self) -> str:
+        """ok, drift, no_model or no_data."""
+        if self.watch is None:
+            return "no_model"
+        if self.watch.samples == 0:
+            return "no_data"
+        return self.watch.state
+
+    def diagnostic_status(self) -> DiagnosticStatus:
+        """`<node>: model watch`: OK unless drift (WARN)."""
+        state, watch = self.state(), self.watch
+        now_ns = self.owner.get_clock().now().nanoseconds
+        values: dict[str, object] = {"state": state, "model_source": self.source}
+        if watch is not None:
+            reference = watch.cusum.reference
+            span = (getattr(watch.model, "metadata", None) or {}).get("output_span")
+            rms = watch.last_window_rms
+            values.update({
+                "residual_rms_m": rms if rms is not None else "none",
+                "residual_rms_pct_of_stroke": (round(100.0 * rms / float(span), 3) if rms is not None and span
+                                               else "unknown"),
+                "reference_rms_m": reference if reference is not None else "calibrating",
+                "drift_statistic": round(watch.cusum.statistic, 4),
+                "drift_threshold": self.test.threshold,
+                "windows": watch.cusum.windows,
+                "model_age_s": round((now_ns - self.since_ns) * 1e-9, 1) if self.since_ns is not None else "none",
+            })
+        level = DiagnosticStatus.WARN if state == "drift" else DiagnosticStatus.OK
+        message = {"ok": "the model in force predicts the stage", "no_model": "no model from the compensator yet",
+                   "no_data": "no joint_states and applied current to compare",
+                   "drift": "drift: the model in force no longer describes the stage"}[state]
+        if state == "ok" and watch is not None and watch.calibrating:
+            message = "calibrating: measuring the residual's level over the first windows"
+        return DiagnosticStatus(level=level, name=f"{self.owner.get_fully_qualified_name()}: model watch",
+                                message=message, hardware_id="sma_stage model watch",
+                                values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
