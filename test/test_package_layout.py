@@ -84,9 +84,9 @@ def test_installed_entry_points_name_their_modules(colcon_install: Path) -> None
 
 
 def test_config_files_are_installed(colcon_install: Path) -> None:
-    sources = sorted(path.name for path in (REPO / "config").glob("*.yaml"))
-    installed = sorted(path.name for path in (colcon_install / "share" / PACKAGE / "config").glob("*.yaml"))
-    assert installed == sources
+    sources = sorted(path.name for path in (REPO / "config").iterdir() if path.is_file())
+    installed = sorted(path.name for path in (colcon_install / "share" / PACKAGE / "config").iterdir())
+    assert installed == sources and "foxglove_layout.json" in installed and "plotjuggler_layout.xml" in installed
 
 
 def test_versions_agree(colcon_install: Path) -> None:
