@@ -937,7 +937,7 @@ def test_the_model_watch_publishes_the_residual_and_flags_a_stage_that_moved(ros
     from sma_stage.model import forward
 
     compensator_node(ros, rate_hz=2.0)
-    identification = identification_node(ros, watch_window=1.0, watch_calibration_windows=2)
+    identification = identification_node(ros, watch_window=1.0, watch_calibration_windows=2, watch_warmup_windows=0)
     fake = FakeStage(ros, identification)
     residuals = Listener(fake.node, JointState, "identification/residual", 1000)
     diagnostics = Listener(fake.node, DiagnosticArray, "/diagnostics")

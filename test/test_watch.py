@@ -38,7 +38,7 @@ def test_a_lasting_rise_of_the_residual_trips_it_within_a_few_windows():
 
 
 def test_the_reference_is_the_larger_of_the_held_out_level_and_the_calibration():
-    cusum = CusumOfWindows(DriftTest(calibration_windows=2), held_out_rms=5e-6)
+    cusum = CusumOfWindows(DriftTest(calibration_windows=2, warmup_windows=0), held_out_rms=5e-6)
     cusum.add(1e-6)
     assert cusum.reference is None
     cusum.add(1e-6)

@@ -11,8 +11,9 @@ level r0 and
 A window at the reference level takes ln(allowance) off S, a window at e^threshold x allowance times it trips
 it at once, a smaller lasting rise in a few windows. The reference level is the larger of the model's held-out
 RMS when it was identified (its file's metadata `held_out_rms`, when there) and the RMS over its first
-`calibration_windows` windows in force: the residual of a model started from rest, or tracking a signal
-other than its excitation, may sit above the held-out level with nothing wrong.
+`calibration_windows` windows in force after `warmup_windows` (the model, started from rest, settles onto the
+stage's state): tracking a signal other than its excitation, the residual may sit above the held-out level
+with nothing wrong.
 """
 
 from __future__ import annotations
@@ -35,7 +36,8 @@ class DriftTest:
     window_s: float = 20.0
     allowance: float = 1.5
     threshold: float = 1.5
-    calibration_windows: int = 3
+    calibration_windows: int = 6
+    warmup_windows: int = 3  # the first windows in force, not counted: the model started from rest settles
 
     def __post_init__(self) -> None:
         for name in ("window_s", "threshold"):
@@ -45,6 +47,8 @@ class DriftTest:
             raise InputError(f"allowance must be at least 1, got {self.allowance}")
         if self.calibration_windows < 1:
             raise InputError(f"calibration_windows must be at least 1, got {self.calibration_windows}")
+        if self.warmup_windows < 0:
+            raise InputError(f"warmup_windows must be at least 0, got {self.warmup_windows}")
 
 
 class CusumOfWindows:
@@ -72,6 +76,8 @@ class CusumOfWindows:
     def add(self, window_rms: float) -> None:
         """One completed window's residual RMS [m]."""
         self.windows += 1
+        if self.windows <= self.test.warmup_windows:
+            return
         if self.reference is None:
             self.calibration.append(window_rms)
             return

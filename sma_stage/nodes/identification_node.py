@@ -134,7 +134,9 @@ IDENTIFICATION_PARAMS = [
           read_only=True),
     Param("watch_threshold", 1.5, "drift when the CUSUM of ln(window RMS / (allowance x reference)) exceeds this",
           0.1, 100.0, read_only=True),
-    Param("watch_calibration_windows", 3, "windows after a model goes in force that measure its reference level",
+    Param("watch_warmup_windows", 3, "windows after a model goes in force that are not counted (it settles from "
+          "rest onto the stage's state)", 0, 1000, read_only=True),
+    Param("watch_calibration_windows", 6, "windows after the warm-up that measure the model's reference level",
           1, 1000, read_only=True),
     Param("input_topic", "current_applied", "std_msgs/Float64 topic of the current recorded and fitted [A]: what "
           "the stage applied (current_cmd for a stage that does not publish it, or a bag of commands)",
@@ -337,7 +339,8 @@ class IdentificationNode(Node):
         self.watch: WatchChannel | None = None
         if self.values["watch"]:
             test = DriftTest(float(self.values["watch_window"]), float(self.values["watch_allowance"]),
-                             float(self.values["watch_threshold"]), int(self.values["watch_calibration_windows"]))
+                             float(self.values["watch_threshold"]), int(self.values["watch_calibration_windows"]),
+                             int(self.values["watch_warmup_windows"]))
             self.watch = WatchChannel(self, str(self.values["compensator_name"]), test,
                                       float(self.values["excite_time_scale"]), str(self.values["joint_name"]))
             self.create_timer(WATCH_PERIOD_S, quiet_on_shutdown(self, self.watch.run))
