@@ -1,7 +1,10 @@
 """The control core: the lag lead, the PI loop with anti-windup, and its input checks (no ROS)."""
 
 import math
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -363,3 +366,22 @@ def test_the_wires_lead_brings_their_temperature_difference_to_the_target_in_one
     start = ThermalState(effect, EffectState(0.0, (1.0, 0.0, 2.0, 0.0)))
     currents = [start.current(start.lead(target, hold, math.inf)) for target in np.linspace(-1.5, -0.5, 21)]
     assert np.all(np.diff(currents) >= 0.0)
+
+
+def test_building_the_core_loads_its_inverse_kernels_before_the_first_command():
+    """A compensator's first command must not wait for numba (seconds on a cold cache: a node's first current_cmd
+    came 4-5 s late): the core's construction runs the inverse once. Checked in a fresh interpreter."""
+    script = """
+import sys
+sys.path.insert(0, "test")
+from test_two_wire import example_model
+from sma_stage.control import Compensator
+from sma_stage.model import _kernels, load_model_file, two_wire
+from sma_stage.demo import DEFAULT_MODEL
+Compensator(example_model(), 5.0)
+Compensator(load_model_file(DEFAULT_MODEL), 5.0)
+print(len(two_wire._command_for.signatures), len(_kernels.exact_inverse_step.signatures))
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                          cwd=Path(__file__).resolve().parent.parent, check=True)
+    assert [int(count) for count in done.stdout.split()] == [1, 1], done.stdout + done.stderr

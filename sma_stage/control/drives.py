@@ -103,6 +103,15 @@ class GPIDrive:
         self.thermal = ThermalState(thermal, self._carried_state(thermal, state))
         drift_state = self._carried_state(self._drift, state)
         self.drift_elapsed_s = float(drift_state.values[0]) if drift_state is not None and drift_state.values else 0.0
+        self._compile()
+
+    def _compile(self) -> None:
+        """Run the inverse and the forward step once on throwaway streams, so that their compiled kernels are
+        loaded (or built, seconds on a cold cache) here and not in the first command."""
+        throwaway = GPIInverseStream(self.model.parameters, self.model.operators, self.method,
+                                     input_range=self.inverse.input_range)
+        throwaway.step(0.5 * sum(self.target_bounds))
+        GPIForwardStream(self.model.parameters, self.model.operators, initial=throwaway.states).step(0.0)
 
     def _carried_state(self, effect: Effect | None, state: ModelState | None) -> EffectState | None:
         if effect is None or state is None:
@@ -170,6 +179,8 @@ class TwoWireDrive:
         margin = TARGET_MARGIN_SPANS * (high - low)
         self.target_bounds = (low - margin, high + margin)
         self.out_of_reach = 0
+        # the inverse's compiled kernel loaded (or built, seconds on a cold cache) here, not in the first command
+        model.stream(None, max_current_a).current_for(0.5 * (low + high), lead_horizon_s(self.tau_s, 1.0))
 
     @property
     def tau_s(self) -> float:
