@@ -4,12 +4,14 @@ a change of the stage is flagged; the watch's cost per sample. Prints tables.
     .venv/bin/python bench/bench_watch.py [--hours 4] [--seeds 0,1,2]
 
 The model is identified as bench/bench_tracking.py identifies it (the paper's signals, the package's pipeline);
-then a fresh simulator tracks a slow sine (60 % of the stroke, period 300 s) with the compensator's PI loop at
-0.1 s, and the watch (sma_stage.identify.watch, the node's defaults) runs the model on the applied current and
-compares it with the measured position, fed one second of samples at a time as the node feeds it. Nothing
-changing: `--hours` of tracking per seed, every alarm counted (the test restarts after each). Changes: a load
-step of 2 N at 3000 s (the flag's delay after it), an ambient drift of 0.002 K/s and a creep of 50 um
-(tau 200 s), both on from the start (the time of the flag).
+then a fresh simulator tracks a setpoint with the compensator's PI loop at 0.1 s, and the watch
+(sma_stage.identify.watch, the node's defaults) runs the model on the applied current and compares it with the
+measured position, fed one second of samples at a time as the node feeds it. Setpoints: a sine over 60 % of the
+stroke (period 300 s), two incommensurate cosines over the same range (the paper's validation signal's shape:
+periods 200 s and 314 s) and random levels held 60 s each. Nothing changing: `--hours` of tracking per seed
+(the sine) and per setpoint, every alarm counted (the tests restart after each). Changes, each from 3000 s on
+(the model long in force, the watch calibrated): a load step of 2 N, an ambient drift of 0.002 K/s, a creep of
+50 um (tau 200 s) switched on; the delay of the first flag after it and which test gave it.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -31,82 +34,99 @@ from sma_stage.identify.watch import DriftTest, ModelWatch  # noqa: E402
 from sma_stage.plant import StageSimulator  # noqa: E402
 from sma_stage.plant.config import Effects  # noqa: E402
 
-SINE_PERIOD_S = 300.0
-SINE_FRACTION = 0.6
+FRACTION = 0.6  # of the stroke the setpoints span
 CHUNK_STEPS = 10  # samples per call of the watch: one second at 0.1 s
-LOAD_STEP_S = 3000.0
-CHANGES = {"load step 2 N at 3000 s": (Effects(load_change_n=2.0, load_change_time_s=LOAD_STEP_S), LOAD_STEP_S,
-                                       LOAD_STEP_S + 1200.0),
-           "ambient drift 0.002 K/s from 0 s": (Effects(ambient_drift_k_per_s=0.002), 0.0, 3600.0),
-           "creep 50 um (tau 200 s) from 0 s": (Effects(creep_amplitude_m=50e-6), 0.0, 3600.0)}
+CHANGE_S = 3000.0  # every change starts here, the model in force and the watch long calibrated
+AFTER_CHANGE_S = 1200.0
+HOLD_S = 60.0  # the random levels' hold
+CHANGES = {"load step 2 N": Effects(load_change_n=2.0, load_change_time_s=CHANGE_S),
+           "ambient drift 0.002 K/s": Effects(ambient_drift_k_per_s=0.002, ambient_drift_start_s=CHANGE_S),
+           "creep 50 um (tau 200 s) switched on": Effects(creep_amplitude_m=50e-6, creep_start_s=CHANGE_S)}
+Setpoint = Callable[[float], float]
 
 
-def run(model, stroke: tuple[float, float], effects: Effects, seconds: float, seed: int
-        ) -> tuple[list[float], float, float]:
-    """(times [s] the watch flagged drift, restarting after each; the tracking RMS [% of the stroke]; the watch's
-    mean cost per sample [us])."""
-    gains = imc_gains(model, CONTROL_STEP_S)
-    core = Compensator(model, MAX_CURRENT_A, **gains)
+def setpoints(stroke: tuple[float, float]) -> dict[str, Setpoint]:
+    """The setpoint kinds [m] as functions of time [s]."""
+    low, high = stroke
+    middle, amplitude = 0.5 * (low + high), 0.5 * FRACTION * (high - low)
+    levels = middle + amplitude * np.random.default_rng(5).uniform(-1.0, 1.0, 10_000)
+    return {"sine": lambda t: middle + amplitude * np.sin(2 * np.pi * t / 300.0),
+            "two cosines": lambda t: middle + 0.5 * amplitude * (np.cos(0.01 * np.pi * t) + np.cos(0.02 * t)),
+            "held random levels": lambda t: float(levels[int(t // HOLD_S)])}
+
+
+def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int
+        ) -> tuple[list[tuple[float, str]], float, float, float]:
+    """((time [s], test) of each drift flag, restarting the tests after each; the tracking RMS [m]; the path test's
+    mean coverage of the windows it looked at; the watch's mean cost per sample [us])."""
+    core = Compensator(model, MAX_CURRENT_A, **imc_gains(model, CONTROL_STEP_S))
     stage = StageSimulator(effects=effects, seed=seed)
     watch = ModelWatch(model)
-    low, high = stroke
-    middle, amplitude = 0.5 * (low + high), 0.5 * SINE_FRACTION * (high - low)
     steps = int(round(seconds / CONTROL_STEP_S))
     position = stage.state.measured_position_m
-    chunk_t, chunk_u, chunk_y, alarms, errors, watch_s = [], [], [], [], [], 0.0
+    chunk, alarms, errors, coverages, watch_s = [], [], [], [], 0.0
     for k in range(steps):
         t = k * CONTROL_STEP_S
-        setpoint = middle + amplitude * np.sin(2 * np.pi * t / SINE_PERIOD_S)
-        current = core.command(setpoint, position, CONTROL_STEP_S if k else 0.0)
+        target = setpoint(t)
+        current = core.command(target, position, CONTROL_STEP_S if k else 0.0)
         position = stage.step(current, CONTROL_STEP_S).measured_position_m
-        errors.append(position - setpoint)
-        chunk_t.append(t + CONTROL_STEP_S)
-        chunk_u.append(current)
-        chunk_y.append(position)
-        if len(chunk_t) == CHUNK_STEPS:
-            started = time.perf_counter()
-            watch.step(np.array(chunk_t), np.array(chunk_u), np.array(chunk_y))
-            watch_s += time.perf_counter() - started
-            chunk_t, chunk_u, chunk_y = [], [], []
-            if watch.state == "drift":
-                alarms.append(t + CONTROL_STEP_S)
-                watch.cusum.statistic = 0.0  # the test restarts; the model runs on
-    rms = 100.0 * float(np.sqrt(np.mean(np.square(errors)))) / (high - low)
-    return alarms, rms, 1e6 * watch_s / steps
+        errors.append(position - target)
+        chunk.append((t + CONTROL_STEP_S, current, position))
+        if len(chunk) < CHUNK_STEPS:
+            continue
+        windows = watch.cusum.windows
+        started = time.perf_counter()
+        watch.step(*(np.array(column) for column in zip(*chunk, strict=True)))
+        watch_s += time.perf_counter() - started
+        chunk = []
+        if watch.cusum.windows > windows and watch.coverage is not None:
+            coverages.append(watch.coverage)
+        if watch.state == "drift":
+            alarms.append((t + CONTROL_STEP_S, "path" if watch.path_drift else "level"))
+            watch.restart_tests()  # the model runs on
+    coverage = float(np.mean(coverages)) if coverages else float("nan")
+    return alarms, float(np.sqrt(np.mean(np.square(errors)))), coverage, 1e6 * watch_s / steps
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--hours", type=float, default=4.0, help="hours of tracking per seed with nothing changing")
-    parser.add_argument("--seeds", default="0,1,2", help="simulator seeds of the runs with nothing changing")
+    parser.add_argument("--hours", type=float, default=4.0, help="hours of tracking per run with nothing changing")
+    parser.add_argument("--seeds", default="0,1,2", help="simulator seeds of the sine runs with nothing changing")
     args = parser.parse_args()
     started = time.perf_counter()
     identified = identify()
     model = identified.models[1].model
+    stroke = identified.stroke_m[1] - identified.stroke_m[0]
+    kinds = setpoints(identified.stroke_m)
     test = DriftTest()
-    print(f"model: {identified.models[1].name}, held-out RMS {model.metadata.get('held_out_rms', float('nan')):.3g} m; "
-          f"watch: window {test.window_s:g} s, allowance {test.allowance:g}, threshold {test.threshold:g}, "
-          f"{test.calibration_windows} calibration windows; tracking a sine over {100 * SINE_FRACTION:g} % of the "
-          f"stroke, period {SINE_PERIOD_S:g} s, PI loop at {CONTROL_STEP_S:g} s\n")
-    print("| run | simulated h | false alarms | tracking RMS % of stroke | watch cost per sample [us] |")
-    print("|---|---|---|---|---|")
+    warm_up_s = (test.warmup_windows + test.calibration_windows + 5) * test.window_s
+    run(model, kinds["sine"], Effects(), warm_up_s, 0)  # the watch's kernels compiled before anything is timed
+    print(f"model: {identified.models[1].name}, held-out RMS {model.metadata.get('held_out_rms', float('nan')):.3g} m, "
+          f"stroke {stroke:.4g} m; watch at its defaults ({test}); PI loop at {CONTROL_STEP_S:g} s\n")
+    print("| setpoint | seed | simulated h | false alarms | tracking RMS % of stroke | path test coverage | "
+          "watch cost per sample [us] |")
+    print("|---|---|---|---|---|---|---|")
+    runs = [("sine", int(seed)) for seed in args.seeds.split(",")] + [("two cosines", 0), ("held random levels", 0)]
     alarms_total, hours_total = 0, 0.0
-    for seed in (int(s) for s in args.seeds.split(",")):
-        alarms, rms, cost = run(model, identified.stroke_m, Effects(), 3600.0 * args.hours, seed)
+    for kind, seed in runs:
+        alarms, rms, coverage, cost = run(model, kinds[kind], Effects(), 3600.0 * args.hours, seed)
         alarms_total, hours_total = alarms_total + len(alarms), hours_total + args.hours
-        print(f"| nothing changing, seed {seed} | {args.hours:g} | {len(alarms)} | {rms:.3f} | {cost:.1f} |")
+        listed = f" ({', '.join(f'{when:.0f} s {test}' for when, test in alarms[:3])})" if alarms else ""
+        print(f"| {kind} | {seed} | {args.hours:g} | {len(alarms)}{listed} | {100 * rms / stroke:.3f} | "
+              f"{coverage:.2f} | {cost:.1f} |")
     rate = f"{alarms_total / hours_total:.3g} per hour" if alarms_total else f"0 in {hours_total:g} h"
     print(f"\nfalse alarms: {rate}\n")
-    print("| change | flagged at [s] | after the change [s] | tracking RMS % of stroke |")
-    print("|---|---|---|---|")
-    for name, (effects, onset_s, seconds) in CHANGES.items():
-        alarms, rms, _ = run(model, identified.stroke_m, effects, seconds, 1)
-        flagged = [a for a in alarms if a >= onset_s]
-        early = [a for a in alarms if a < onset_s]
-        when = f"{flagged[0]:.0f}" if flagged else "never"
-        delay = f"{flagged[0] - onset_s:.0f}" if flagged else "-"
-        extra = f" ({len(early)} before it)" if early else ""
-        print(f"| {name} | {when}{extra} | {delay} | {rms:.3f} |")
+    print("| setpoint | change from 3000 s | first flag after it [s] | test | flags before it |")
+    print("|---|---|---|---|---|")
+    cases = [("sine", name) for name in CHANGES] + [("two cosines", "load step 2 N"),
+                                                    ("held random levels", "load step 2 N")]
+    for kind, name in cases:
+        alarms, _, _, _ = run(model, kinds[kind], CHANGES[name], CHANGE_S + AFTER_CHANGE_S, 1)
+        flagged = [(when, test) for when, test in alarms if when >= CHANGE_S]
+        early = len(alarms) - len(flagged)
+        delay, test = (f"{flagged[0][0] - CHANGE_S:.0f}", flagged[0][1]) if flagged else (
+            f"none in {AFTER_CHANGE_S:g}", "-")
+        print(f"| {kind} | {name} | {delay} | {test} | {early} |")
     print(f"\nwall time {time.perf_counter() - started:.1f} s")
     return 0
 

@@ -313,6 +313,21 @@ def test_the_current_changes_by_at_most_the_rate_limit_per_step():
     assert currents[-1] > currents[1] + 2.0, "it gets there, 0.1 A per 0.1 s step"
 
 
+def test_a_core_that_continues_another_moves_the_current_from_its_last_command_within_the_rate_limit():
+    """A model swapped in while tracking (its states from where the stage is) continues the loop of the old core:
+    the current moves from the last command by at most the rate limit, and the integral carries on."""
+    old = Compensator(lagged(10.0), LIMIT_A, kp=0.5, ki=0.2, max_rate_a_per_s=1.0)
+    for _ in range(300):
+        old.command(2e-4, 1.9e-4, 0.1)
+    other = lagged(4.0)
+    jumping = Compensator(other, LIMIT_A, kp=0.5, ki=0.2, max_rate_a_per_s=1.0)
+    assert abs(jumping.command(2e-4, 1.9e-4, 0.1) - old.command_a) > 0.5, "without it, the first command jumps"
+    swapped = Compensator(other, LIMIT_A, kp=0.5, ki=0.2, max_rate_a_per_s=1.0)
+    swapped.continue_from(old)
+    assert swapped.integral_m == old.integral_m != 0.0
+    assert abs(swapped.command(2e-4, 1.9e-4, 0.1) - old.command_a) <= 0.1 + 1e-12
+
+
 def test_following_the_applied_current_keeps_the_model_where_the_stage_is():
     """Currents the compensator did not command (an excitation) step its lag (each held over its step) and
     its operators (driven by the lag's state), so its next command starts where the stage is."""

@@ -839,12 +839,15 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     time.sleep(0.1)
     answer = ros.call(probe, Trigger, "identification/refit", timeout=30.0)
     assert answer.success, answer.message
-    wait_until(lambda: reports.messages, 5.0, "the report on ~/report")
+    wait_until(lambda: reports.messages and "report_file" in json.loads(reports.messages[-1].data), 5.0,
+               "the refit's report on ~/report")
     report = json.loads(reports.messages[-1].data)
     assert "\n" not in answer.message and len(answer.message) < 400, "~/refit answers with one line"
     assert answer.message.startswith("refit ok: ") and str(model_file) in answer.message
     assert report["report_file"] == str(tmp_path / "fitted.report.json") and report["report_file"] in answer.message
+    history = report.pop("history")
     assert json.loads((tmp_path / "fitted.report.json").read_text()) == report
+    assert history and history[-1]["source"], "~/report carries the models in force"
     assert set(report) >= {"model", "identification", "validation", "validation_source", "fit_seconds"}
     assert "held-out tail" in report["validation_source"]
     assert report["validation"]["samples"] == report["samples"]["validation"] > 10

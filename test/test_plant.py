@@ -200,6 +200,16 @@ def test_load_change_moves_the_stage_after_its_time():
     assert pulled.position_m[-1] < base.position_m[-1] - 1e-6
 
 
+@pytest.mark.parametrize("effects", [Effects(ambient_drift_k_per_s=0.05, ambient_drift_start_s=200.0),
+                                     Effects(creep_amplitude_m=20e-6, creep_time_constant_s=50.0, creep_start_s=200.0)])
+def test_ambient_drift_and_creep_act_from_their_start_time(effects):
+    base = constant_run(4.5, 400.0, config=QUIET)
+    changed = constant_run(4.5, 400.0, config=QUIET, effects=effects)
+    before = base.t_s <= 200.0
+    np.testing.assert_array_equal(changed.position_m[before], base.position_m[before])
+    assert abs(changed.position_m[-1] - base.position_m[-1]) > 1e-6
+
+
 def test_sensor_noise_and_quantisation():
     config = StageConfig(sensor_noise_m=0.3e-6, sensor_resolution_m=0.1e-6)
     result = constant_run(0.0, 1000.0, dt=0.1, config=config)

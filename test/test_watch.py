@@ -1,26 +1,27 @@
-"""The model watch (sma_stage.identify.watch): the drift test's false alarms and detection on synthetic window
-RMS values, and the watch's residual on a record its model made, before and after the plant changes."""
+"""The model watch (sma_stage.identify.watch): the level test's false alarms and detection on synthetic window
+RMS values; the path test on a record its model made with a structured error added (the model's own error along
+the path, repeatable), before and after the plant changes by a fraction of that error."""
 
 import numpy as np
 import pytest
 from test_two_wire import example_model
 
 from sma_stage.errors import InputError
-from sma_stage.identify.watch import CusumOfWindows, DriftTest, ModelWatch
+from sma_stage.identify.watch import CusumOfWindows, DriftTest, ModelWatch, RecentRecord
 
 
 def windows_to_alarm(levels: np.ndarray, test: DriftTest, held_out: float | None = None) -> list[int]:
-    """Indices of the windows at which the test alarms, restarting it after each alarm."""
+    """Indices of the windows at which the level test alarms, restarting it after each alarm."""
     alarms, cusum = [], CusumOfWindows(test, held_out)
     for index, level in enumerate(levels):
         cusum.add(float(level))
         if cusum.drift:
             alarms.append(index)
-            cusum = CusumOfWindows(test, held_out)
+            cusum.statistic = 0.0
     return alarms
 
 
-def test_noise_alone_does_not_trip_the_test_in_a_thousand_hours_of_windows():
+def test_noise_alone_does_not_trip_the_level_test_in_a_thousand_hours_of_windows():
     """Window RMS values scattered +-20 % (log-normal, sigma 0.1 in ln) about a steady level: 180,000 windows of
     20 s (1,000 h) without an alarm at the defaults."""
     rng = np.random.default_rng(0)
@@ -28,48 +29,130 @@ def test_noise_alone_does_not_trip_the_test_in_a_thousand_hours_of_windows():
     assert windows_to_alarm(levels, DriftTest()) == []
 
 
-def test_a_lasting_rise_of_the_residual_trips_it_within_a_few_windows():
+def test_a_lasting_rise_above_anything_calibrated_trips_the_level_test_within_a_few_windows():
     rng = np.random.default_rng(1)
-    steady = 2e-6 * np.exp(rng.normal(0.0, 0.1, 30))
-    for factor, most_windows in ((2.5, 4), (4.0, 2), (10.0, 1)):
+    test = DriftTest()
+    steady = 2e-6 * np.exp(rng.normal(0.0, 0.1, test.warmup_windows + test.calibration_windows + 30))
+    for factor, most_windows in ((4.0, 4), (10.0, 1)):
         risen = factor * 2e-6 * np.exp(rng.normal(0.0, 0.1, 10))
-        alarms = windows_to_alarm(np.r_[steady, risen], DriftTest())
-        assert alarms and 30 <= alarms[0] < 30 + most_windows, (factor, alarms)
+        alarms = windows_to_alarm(np.r_[steady, risen], test)
+        assert alarms and steady.size <= alarms[0] < steady.size + most_windows, (factor, alarms)
+    assert windows_to_alarm(np.r_[steady, 1.5 * steady[-30:]], test) == [], "within the allowance of the ceiling"
 
 
 def test_the_reference_is_the_larger_of_the_held_out_level_and_the_calibration():
     cusum = CusumOfWindows(DriftTest(calibration_windows=2, warmup_windows=0), held_out_rms=5e-6)
     cusum.add(1e-6)
     assert cusum.reference is None
-    cusum.add(1e-6)
-    assert cusum.reference == 5e-6
+    cusum.add(2e-6)
+    assert cusum.reference == 5e-6 and cusum.ceiling == 5e-6
     cusum.add(6e-6)
     assert not cusum.drift and cusum.statistic == 0.0, "1.2 times the held-out level is within the allowance"
 
 
 @pytest.mark.parametrize(("setting", "value"), [("window_s", 0.0), ("allowance", 0.5), ("threshold", float("nan")),
-                                                ("calibration_windows", 0)])
+                                                ("calibration_windows", 0), ("shift_allowance", -0.1),
+                                                ("shift_threshold", 0.0), ("path_radius", float("inf")),
+                                                ("min_coverage", 1.5)])
 def test_bad_settings_are_refused_in_one_line(setting, value):
     with pytest.raises(InputError, match=setting):
         DriftTest(**{setting: value})
 
 
-def test_the_watch_follows_its_own_model_and_flags_a_plant_that_moved():
-    """Positions made by the model itself with 0.5 um of noise: the residual is the noise and the watch stays ok
-    over 1,500 s; 10 um added to every position from then on: drift within three windows (60 s)."""
+FAST = DriftTest(calibration_windows=30)  # a 600 s calibration: five periods of the paths below
+
+
+def plant_record(path: str, shift_m: float = 0.0, shift_from_s: float = np.inf, seconds: float = 2400.0):
+    """(t, u, measured position) of a plant that is the example model plus a structured error of 10 um RMS that
+    depends on where the path is (not white: as a model's error is), plus 0.2 um of noise; shift_m added to the
+    position from shift_from_s on. path: 'periodic' (a sine of period 120 s) or 'wandering' (a random walk of the
+    current that never retraces its steps)."""
+    model = example_model()
+    rng = np.random.default_rng(2)
+    t = np.arange(0.0, seconds, 0.2)
+    if path == "periodic":
+        u = 4.0 * np.sin(2 * np.pi * t / 120.0)
+    else:
+        u = np.clip(np.cumsum(rng.normal(0.0, 0.05, t.size)), -4.5, 4.5)
+    predicted = model.predict(t, u)
+    span = predicted.max() - predicted.min()
+    structured = 1.4e-5 * np.sin(2 * np.pi * (predicted - predicted.min()) / span * 1.5)
+    position = predicted + structured + rng.normal(0.0, 2e-7, t.size) + np.where(t >= shift_from_s, shift_m, 0.0)
+    return t, u, position
+
+
+def watch_record(t, u, position, test: DriftTest = FAST, chunk: int = 50) -> tuple[ModelWatch, list[tuple]]:
+    """Feed a record in chunks (as the node does); the (time [s], path drift, level drift) of each flag, the tests
+    restarted after each."""
+    watch, flags = ModelWatch(example_model(), test), []
+    for start in range(0, t.size, chunk):
+        part = slice(start, start + chunk)
+        watch.step(t[part], u[part], position[part])
+        if watch.state == "drift":
+            flags.append((t[part][-1], watch.path_drift, watch.cusum.drift))
+            watch.restart_tests()
+    return watch, flags
+
+
+def test_the_path_test_stays_quiet_on_the_models_own_repeatable_error():
+    watch, flags = watch_record(*plant_record("periodic", seconds=4800.0))
+    assert flags == []
+    assert watch.coverage is not None and watch.coverage > 0.5, "the periodic path is remembered ground"
+    assert watch.last_innovation_rms < 0.1 * watch.cusum.reference
+
+
+def test_a_shift_of_a_fifth_of_the_models_error_is_flagged_by_the_path_test_within_two_minutes():
+    """2 um added from 1500 s where the model's structured error is 10 um RMS: the level test cannot see it, the
+    path test does within six windows (120 s)."""
+    _, flags = watch_record(*plant_record("periodic", 2e-6, 1500.0))
+    assert flags, "not flagged"
+    when, path_drift, level_drift = flags[0]
+    assert 1500.0 <= when <= 1620.0 and path_drift and not level_drift, flags
+
+
+def test_a_path_never_retraced_is_not_judged_and_gives_no_alarm():
+    watch, flags = watch_record(*plant_record("wandering", 2e-6, 1500.0))
+    assert flags == [] and watch.judged_windows == 0
+
+
+def test_the_watch_flags_a_plant_that_moved_by_far_more_than_its_error():
+    """Positions made by the model itself with 0.5 um of noise; 10 um added to every position from 1500 s on:
+    drift within three windows (60 s)."""
     model = example_model()
     rng = np.random.default_rng(2)
     t = np.arange(0.0, 2400.0, 0.2)
     u = 4.0 * np.sin(2 * np.pi * t / 120.0)
     position = model.predict(t, u) + rng.normal(0.0, 5e-7, t.size)
     position[t >= 1500.0] += 1e-5
-    watch = ModelWatch(model)
-    flagged_at = None
-    for start in range(0, t.size, 50):  # in chunks, as the node feeds it
-        chunk = slice(start, start + 50)
-        residual = watch.step(t[chunk], u[chunk], position[chunk])
-        if t[chunk][-1] < 1500.0:
-            assert np.sqrt(np.mean(residual**2)) < 1e-6 and watch.state == "ok"
-        elif flagged_at is None and watch.state == "drift":
-            flagged_at = t[chunk][-1]
-    assert flagged_at is not None and flagged_at - 1500.0 <= 60.0, flagged_at
+    _, flags = watch_record(t, u, position)
+    assert flags and 1500.0 <= flags[0][0] <= 1560.0, flags
+
+
+def test_a_watch_started_from_the_applied_currents_history_predicts_as_one_run_over_it_all():
+    model, t = example_model(), np.arange(0.0, 400.0, 0.2)
+    u = 4.0 * np.sin(2 * np.pi * t / 90.0)
+    position = model.predict(t, u)
+    later = ModelWatch(model, history=(t[:1000], u[:1000]))
+    residual = later.step(t[1000:], u[1000:], position[1000:])
+    np.testing.assert_allclose(residual, 0.0, atol=1e-15)
+
+
+def test_the_recent_record_keeps_the_last_seconds_in_order():
+    record, t = RecentRecord(60.0), np.arange(0.0, 300.0, 0.5)
+    for start in range(0, t.size, 7):
+        part = t[start:start + 7]
+        record.add(part, 2.0 * part, 3.0 * part)
+    kept_t, kept_u, kept_y = record.arrays()
+    np.testing.assert_array_equal(kept_t, t[t > t[-1] - 60.0])
+    np.testing.assert_array_equal(kept_u, 2.0 * kept_t)
+    np.testing.assert_array_equal(kept_y, 3.0 * kept_t)
+
+
+def test_the_drift_says_where_the_change_began():
+    t, u, position = plant_record("periodic", 2e-6, 1500.0)
+    watch = ModelWatch(example_model(), FAST)
+    for start in range(0, t.size, 5):
+        watch.step(t[start:start + 5], u[start:start + 5], position[start:start + 5])
+        if watch.state == "drift":
+            break
+    assert watch.state == "drift" and 1500.0 - FAST.window_s <= watch.onset_s <= 1500.0 + FAST.window_s

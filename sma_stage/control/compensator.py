@@ -245,6 +245,20 @@ class Compensator:
         self._hold_s = 0.0
         self._setpoint = _SetpointMotion()
 
+    def continue_from(self, previous: Compensator) -> None:
+        """Take over the loop of another core (the one this replaces, with another model): the last command, so
+        that the rate limit moves the current from there; the integral, the played target and the setpoint's
+        motion. The model's states stay this core's own (from its carried state)."""
+        low, high = self.drive.target_bounds
+        reach = high - low
+        self.command_a = previous.command_a
+        self._commanded = previous._commanded
+        self.integral_m = min(reach, max(-reach, previous.integral_m))
+        self._played_m = previous._played_m
+        self.target_m = previous.target_m
+        self._hold_s = previous._hold_s
+        self._setpoint = previous._setpoint
+
     @property
     def tau_s(self) -> float:
         """The model's (slowest) thermal time constant [s] the lead undoes (0: none)."""

@@ -1,50 +1,83 @@
 """The model in force watched against the stage (no ROS): its prediction from the applied current compared with
-the measured position, sample by sample, and a sequential test for a change in how well it predicts.
+the measured position, sample by sample, and two sequential tests for a change of the stage.
 
-The test (a CUSUM of log RMS ratios over windows): the residual of a hysteresis model is not white (it is the
-model's error along the input's path, correlated over seconds), so a test per sample would count the same
-error many times. Per window of `window_s` of stage time the residual's RMS r is compared with the reference
-level r0 and
+The residual of a hysteresis model is not white: it is the model's error along the stage's path, correlated
+over seconds and, on the stage simulator, as large as the changes worth flagging (a 2 N load step moves the
+stage 3-7 um where the model's error runs to 26 um). But it is repeatable: the same stage driven along the
+same path gives the same residual, to the noise. So the watch has two tests, each a CUSUM over windows of
+`window_s` of stage time, both calibrated over the `calibration_windows` after `warmup_windows` (the model,
+started where the watch started it, settles onto the stage's state):
 
-    S = max(0, S + ln(r / r0) - ln(allowance)),     drift while S > threshold.
+- the path test: while calibrating, the residual is remembered against where the stage's path was (the measured
+  position and four low-passes of it, 2 to 120 s: a summary of its recent history; with the PI loop it follows
+  the setpoint whatever the stage became, so a changed stage is still on remembered ground). Afterwards each
+  sample whose path comes within `path_radius` (in the memory's standard deviations) of remembered ones on at
+  least two passes (PASS_GAP_S apart) whose residuals agreed is compared with the residual remembered there:
+  the innovation. Per window with at least `min_coverage` of the samples it looked at so judged,
+  z = sqrt(max(0, e^2 - noise^2)) / r0 (e the innovations' RMS, noise what the sensor noise alone gives, r0 the
+  reference below) and S = max(0, S + z - shift_allowance); drift while S > shift_threshold. It sees a change
+  of a fraction of the model's own error where the stage revisits ground it covered twice while calibrating;
+  elsewhere it does not judge (`coverage`).
+- the level test: the residual's RMS r per window against the largest window RMS of the calibration (at least
+  r0), S = max(0, S + ln(r / (allowance ceiling))), drift while S > threshold: the model's error grown beyond
+  anything it showed, anywhere.
 
-A window at the reference level takes ln(allowance) off S, a window at e^threshold x allowance times it trips
-it at once, a smaller lasting rise in a few windows. The reference level is the larger of the model's held-out
-RMS when it was identified (its file's metadata `held_out_rms`, when there) and the RMS over its first
-`calibration_windows` windows in force after `warmup_windows` (the model, started from rest, settles onto the
-stage's state): tracking a signal other than its excitation, the residual may sit above the held-out level
-with nothing wrong.
+The reference r0 is the larger of the model's held-out RMS when it was identified (its file's metadata
+`held_out_rms`, when there) and the residual's RMS over the calibration windows.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+from scipy.spatial import cKDTree
 
 from sma_stage.errors import InputError
 
 STATES = ("ok", "drift", "no_model", "no_data")
+PATH_TIME_CONSTANTS_S = (2.0, 8.0, 30.0, 120.0)  # the low-passes of the applied current that summarise its path
+PATH_NEIGHBOURS = 16  # remembered samples looked at for each one judged (from two passes or more)
+MEMORY_RATE_HZ = 2.0  # the memory keeps at most this many samples per second of stage time
+PASS_GAP_S = 20.0  # remembered samples this far apart [s] are separate passes along the path
+MIN_PASSES = 3  # the memory judges a sample only where it holds this many passes that agreed ...
+PASS_AGREEMENT = 1.0  # ... within this fraction of the reference r0
+EXPECTED_FLOOR = 0.05  # ... and at least this fraction of r0
+MIN_JUDGED = 5  # the path test judges a window with at least this many samples it could compare
+WINDOWS_TO_TRIP = 3  # judged windows the path test needs at least to trip (one odd revisit does not)
+EXPLAINED = 2.0  # innovations up to this many times what the passes' differences and the noise give ...
+JUDGE_RATE_HZ = 10.0  # the path test judges at most this many samples per second of stage time
+MIN_FEATURE_SPREAD_M = 1e-9  # a feature that did not move in the memory is scaled as if it spread this much [m]
 
 
 @dataclass(frozen=True)
 class DriftTest:
-    """The CUSUM's settings: windows at up to `allowance` times the reference count as no change; drift when
-    the sum of ln(r / (allowance r0)) exceeds `threshold`."""
+    """The tests' settings: the level test drifts when the sum of ln(r / (allowance r0)) over windows exceeds
+    `threshold`; the path test when the sum of (z - shift_allowance) exceeds `shift_threshold`."""
 
     window_s: float = 20.0
     allowance: float = 1.5
     threshold: float = 1.5
-    calibration_windows: int = 6
-    warmup_windows: int = 3  # the first windows in force, not counted: the model started from rest settles
+    calibration_windows: int = 60
+    warmup_windows: int = 15  # the first windows in force, not counted: the model and the stage settle
+    shift_allowance: float = 0.1  # innovations up to this fraction of r0 count as no change
+    shift_threshold: float = 0.3
+    path_radius: float = 0.2  # a path this near remembered ones (in the memory's standard deviations) is judged
+    min_coverage: float = 0.25  # the path test judges a window with at least this fraction of it covered
 
     def __post_init__(self) -> None:
-        for name in ("window_s", "threshold"):
+        for name in ("window_s", "threshold", "shift_threshold", "path_radius"):
             if not 0.0 < getattr(self, name) < math.inf:
                 raise InputError(f"{name} must be positive and finite, got {getattr(self, name)}")
         if not 1.0 <= self.allowance < math.inf:
             raise InputError(f"allowance must be at least 1, got {self.allowance}")
+        if not 0.0 <= self.shift_allowance < math.inf:
+            raise InputError(f"shift_allowance must be at least 0 and finite, got {self.shift_allowance}")
+        if not 0.0 < self.min_coverage <= 1.0:
+            raise InputError(f"min_coverage must be in (0, 1], got {self.min_coverage}")
         if self.calibration_windows < 1:
             raise InputError(f"calibration_windows must be at least 1, got {self.calibration_windows}")
         if self.warmup_windows < 0:
@@ -52,7 +85,7 @@ class DriftTest:
 
 
 class CusumOfWindows:
-    """The sequential test on window RMS values [m]; feed each completed window's RMS with `add`."""
+    """The level test on window RMS values [m]; feed each completed window's RMS with `add`."""
 
     def __init__(self, test: DriftTest, held_out_rms: float | None = None) -> None:
         self.test = test
@@ -60,14 +93,8 @@ class CusumOfWindows:
         self.calibration: list[float] = []
         self.statistic = 0.0
         self.windows = 0
-
-    @property
-    def reference(self) -> float | None:
-        """The reference level r0 [m] (None while calibrating)."""
-        if len(self.calibration) < self.test.calibration_windows:
-            return None
-        calibrated = float(np.sqrt(np.mean(np.square(self.calibration))))
-        return max(calibrated, self.held_out_rms or 0.0)
+        self.reference: float | None = None  # r0 [m]: the held-out RMS or the calibration's, the larger (None before)
+        self.ceiling: float | None = None  # the largest window RMS [m] while calibrating, at least r0 (None before)
 
     @property
     def drift(self) -> bool:
@@ -80,24 +107,205 @@ class CusumOfWindows:
             return
         if self.reference is None:
             self.calibration.append(window_rms)
+            if len(self.calibration) == self.test.calibration_windows:
+                calibrated = float(np.sqrt(np.mean(np.square(self.calibration))))
+                self.reference = max(calibrated, self.held_out_rms or 0.0)
+                self.ceiling = max(self.reference, max(self.calibration))
             return
-        ratio = max(window_rms, 1e-300) / self.reference
+        ratio = max(window_rms, 1e-300) / self.ceiling
         self.statistic = max(0.0, self.statistic + math.log(ratio) - math.log(self.test.allowance))
 
 
-class ModelWatch:
-    """A model (any family: `run(t, u, state)`) run forward from rest on the applied current, its residual
-    (measured - predicted [m]) per sample, its RMS per window of stage time and the drift test on them."""
+@numba.njit(cache=True, nogil=True)
+def _low_passes(t: np.ndarray, u: np.ndarray, taus: np.ndarray, last_t: float, state: np.ndarray,
+                out: np.ndarray) -> None:
+    """Per sample, the current and its first-order low-passes (time constants taus [s]) into out's rows; state
+    holds the low-passes at last_t [s] (NaN: start them at the first current) and is advanced in place."""
+    for k in range(t.size):
+        if math.isnan(state[0]):
+            state[:] = u[k]
+        else:
+            dt = t[k] - last_t
+            for j in range(taus.size):
+                a = math.exp(-dt / taus[j])
+                state[j] = a * state[j] + (1.0 - a) * u[k]
+        last_t = t[k]
+        out[k, 0] = u[k]
+        out[k, 1:] = state
 
-    def __init__(self, model: object, test: DriftTest | None = None) -> None:
+
+@numba.njit(cache=True, nogil=True)
+def _revisits(index: np.ndarray, times: np.ndarray, residuals: np.ndarray, gap_s: float, tolerance: float,
+              min_passes: int, reference: np.ndarray, spread: np.ndarray) -> None:
+    """Per row of neighbour indices (len(times) where none): the remembered residual there and the variance a new
+    residual there has about it with nothing changed, NaN unless the neighbours come from at least min_passes
+    passes (runs of samples more than gap_s [s] apart) whose mean residuals agree within tolerance [m]; then
+    the mean of the passes' means, and their variance (ddof 1) times 1 + 1/passes."""
+    rows, columns = index.shape
+    picked = np.empty(columns)
+    means = np.empty(columns)
+    for row in range(rows):
+        reference[row] = np.nan
+        spread[row] = np.nan
+        count = 0
+        for column in range(columns):
+            if index[row, column] < times.size:
+                picked[count] = index[row, column]
+                count += 1
+        if count < 2:
+            continue
+        order = np.argsort(times[picked[:count].astype(np.int64)])
+        passes = 0
+        pass_sum, pass_count, last_t = 0.0, 0, -np.inf
+        for position in range(count + 1):
+            if position < count:
+                sample = int(picked[order[position]])
+                time = times[sample]
+            if position == count or time - last_t > gap_s:
+                if pass_count:
+                    means[passes] = pass_sum / pass_count
+                    passes += 1
+                pass_sum, pass_count = 0.0, 0
+            if position < count:
+                pass_sum += residuals[sample]
+                pass_count += 1
+                last_t = time
+        if passes < min_passes or means[:passes].max() - means[:passes].min() > tolerance:
+            continue
+        mean = means[:passes].mean()
+        reference[row] = mean
+        spread[row] = np.sum((means[:passes] - mean) ** 2) / (passes - 1) * (1.0 + 1.0 / passes)
+
+
+class PathMemory:
+    """The residual [m] remembered against the input's path: `features` of each sample from the applied
+    current; `remember` until `build`; then `innovations` of new samples against it, where the memory holds
+    the path at least twice and the residual agreed."""
+
+    def __init__(self) -> None:
+        self._taus = np.array(PATH_TIME_CONSTANTS_S)
+        self._state = np.full(self._taus.size, np.nan)
+        self._last_t = 0.0
+        self._remembered: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._tree: cKDTree | None = None
+        self._times = self._residuals = np.empty(0)
+        self.noise_m = 0.0
+
+    @property
+    def built(self) -> bool:
+        return self._tree is not None
+
+    def features(self, t_s: np.ndarray, position_m: np.ndarray) -> np.ndarray:
+        """The path at each sample (rows: the position and its low-passes [m]), carried on from the last call."""
+        out = np.empty((t_s.size, self._taus.size + 1))
+        _low_passes(t_s, position_m, self._taus, self._last_t, self._state, out)
+        if t_s.size:
+            self._last_t = float(t_s[-1])
+        return out
+
+    def remember(self, t_s: np.ndarray, features: np.ndarray, residual: np.ndarray) -> None:
+        self._remembered.append((t_s, features, residual))
+
+    def build(self) -> bool:
+        """Build the memory from what was remembered (False when it holds too little to judge by)."""
+        if not self._remembered:
+            return False
+        times, features, residuals = (np.concatenate(column) for column in zip(*self._remembered, strict=True))
+        self._remembered = []
+        if residuals.size < 2 * PATH_NEIGHBOURS:
+            return False
+        self.noise_m = float(np.median(np.abs(np.diff(residuals))) / (0.6745 * math.sqrt(2.0)))
+        kept = thinned_to_rate(times, MEMORY_RATE_HZ)
+        features, self._times, self._residuals = features[kept], times[kept], residuals[kept]
+        self._scale = max(float(features[:, 0].std()), MIN_FEATURE_SPREAD_M)
+        self._tree = cKDTree(features / self._scale)
+        return True
+
+    def innovations(self, features: np.ndarray, residual: np.ndarray, radius: float, gap_s: float,
+                    tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(each residual less the residual remembered where the path was the same (within radius) on at least two
+        passes that agreed within tolerance_m [m]; the variance of that with nothing changed [m^2], from how the
+        passes differed), NaN where the memory cannot say."""
+        _, index = self._tree.query(features / self._scale, k=PATH_NEIGHBOURS, distance_upper_bound=radius)
+        reference, spread = np.empty(residual.size), np.empty(residual.size)
+        _revisits(np.atleast_2d(index), self._times, self._residuals, gap_s, tolerance_m, MIN_PASSES, reference,
+                  spread)
+        return residual - reference, spread
+
+
+def thinned_to_rate(t_s: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Indices of the samples kept when at most rate_hz per second of t_s [s] are: the first of each 1/rate_hz."""
+    slots = np.floor(t_s * rate_hz)
+    return np.flatnonzero(np.r_[True, slots[1:] != slots[:-1]])
+
+
+class RecentRecord:
+    """The last `seconds` of aligned samples (t [s], input [A], output [m]), kept in chunks."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self._chunks: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque()
+
+    def add(self, t_s: np.ndarray, current_a: np.ndarray, position_m: np.ndarray) -> None:
+        if t_s.size == 0:
+            return
+        self._chunks.append((t_s.copy(), current_a.copy(), position_m.copy()))
+        while len(self._chunks) > 1 and self._chunks[1][0][0] <= t_s[-1] - self.seconds:
+            self._chunks.popleft()
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(t, input, output) of the last `seconds` (empty arrays when nothing came)."""
+        if not self._chunks:
+            return np.empty(0), np.empty(0), np.empty(0)
+        t, u, y = (np.concatenate(column) for column in zip(*self._chunks, strict=True))
+        keep = t > t[-1] - self.seconds
+        return t[keep], u[keep], y[keep]
+
+    @property
+    def span_s(self) -> float:
+        """Stage seconds from the first sample kept to the last."""
+        if not self._chunks:
+            return 0.0
+        return float(self._chunks[-1][0][-1] - self._chunks[0][0][0])
+
+
+@dataclass
+class _Window:
+    """The samples of the window being filled: residuals [m], and the path test's innovations [m] of the samples
+    it looked at (NaN where the memory could not say)."""
+
+    start_s: float
+    residuals: list[np.ndarray]
+    innovations: list[np.ndarray]
+    spreads: list[np.ndarray]  # the variance of each innovation with nothing changed [m^2]
+
+
+class ModelWatch:
+    """A model (any family: `run(t, u, state)`) run on the applied current, its residual (measured - predicted
+    [m]) per sample, and the two drift tests on windows of it.
+
+    The model starts from rest, or from where `history` (t [s], u [A]: the applied current before the first
+    sample) leaves it."""
+
+    def __init__(self, model: object, test: DriftTest | None = None,
+                 history: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.model = model.without_state()
         self.test = test or DriftTest()
         held_out = (getattr(model, "metadata", None) or {}).get("held_out_rms")
         self.cusum = CusumOfWindows(self.test, float(held_out) if held_out is not None else None)
         self._state = None
-        self._window_start: float | None = None
-        self._window: list[float] = []
+        if history is not None and len(history[0]):
+            self._state = self.model.run(*history, None)[1]
+        self.memory = PathMemory()
+        self.path_statistic = 0.0
+        self.judged_windows = 0
+        self._last_judged_s = -math.inf
+        self._level_onset_s = self._path_onset_s = 0.0
+        self.coverage: float | None = None  # the judged fraction of the last window the path test looked at
+        self._started_s: float | None = None
+        self._window: _Window | None = None
         self.last_window_rms: float | None = None
+        self.last_innovation_rms: float | None = None
         self.samples = 0
 
     def step(self, t_s: np.ndarray, current_a: np.ndarray, position_m: np.ndarray) -> np.ndarray:
@@ -108,25 +316,115 @@ class ModelWatch:
             return np.empty(0)
         predicted, self._state = self.model.run(t_s, current_a, self._state)
         residual = position_m - predicted
-        for time_s, value in zip(t_s, residual, strict=True):
-            self._add_to_window(float(time_s), float(value))
+        if self._started_s is None:
+            self._started_s = float(t_s[0])
+        innovation, spread, looked_at = self._path(t_s, position_m, residual)
+        self._add_to_windows(t_s, residual, innovation, spread, looked_at)
         self.samples += t_s.size
         return residual
 
-    def _add_to_window(self, time_s: float, value: float) -> None:
-        if self._window_start is None:
-            self._window_start = time_s
-        if time_s - self._window_start >= self.test.window_s and self._window:
-            self.last_window_rms = float(np.sqrt(np.mean(np.square(self._window))))
-            self.cusum.add(self.last_window_rms)
-            self._window, self._window_start = [], time_s
-        self._window.append(value)
+    @property
+    def memory_window_s(self) -> tuple[float, float]:
+        """The stage times [s] the path memory remembers: the calibration windows after the warm-up."""
+        start = (self._started_s or 0.0) + self.test.warmup_windows * self.test.window_s
+        return start, start + self.test.calibration_windows * self.test.window_s
+
+    def _path(self, t_s: np.ndarray, position_m: np.ndarray, residual: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the path test's innovations of these samples [m] and their variances with nothing changed [m^2], NaN
+        where the memory cannot say; which samples it looked at), remembering while it learns."""
+        features = self.memory.features(t_s, position_m)
+        innovation, spread = np.full(t_s.size, np.nan), np.full(t_s.size, np.nan)
+        looked_at = np.zeros(t_s.size, dtype=bool)
+        reference = self.cusum.reference
+        if self.memory.built and reference is not None:
+            judged = thinned_to_rate(t_s, JUDGE_RATE_HZ)
+            judged = judged[t_s[judged] > self._last_judged_s]
+            if judged.size:
+                self._last_judged_s = float(t_s[judged[-1]])
+                looked_at[judged] = True
+                innovation[judged], spread[judged] = self.memory.innovations(
+                    features[judged], residual[judged], self.test.path_radius, PASS_GAP_S, PASS_AGREEMENT * reference)
+            return innovation, spread, looked_at
+        start, end = self.memory_window_s
+        learning = (t_s >= start) & (t_s < end)
+        if learning.any():
+            self.memory.remember(t_s[learning], features[learning], residual[learning])
+        if t_s[-1] >= end and not self.memory.build():
+            self.memory = PathMemory()  # too little came to remember: learn again from here
+            self._started_s = float(t_s[-1]) - self.test.warmup_windows * self.test.window_s
+        return innovation, spread, looked_at
+
+    def _add_to_windows(self, t_s: np.ndarray, residual: np.ndarray, innovation: np.ndarray, spread: np.ndarray,
+                        looked_at: np.ndarray) -> None:
+        """Add samples to the window being filled, closing each window at the first sample window_s after its
+        start."""
+        first = 0
+        while first < t_s.size:
+            if self._window is None:
+                self._window = _Window(float(t_s[first]), [], [], [])
+            window = self._window
+            end = first + int(np.searchsorted(t_s[first:], window.start_s + self.test.window_s, side="left"))
+            if end == first:
+                self._close_window(window)
+                self._window = _Window(float(t_s[first]), [], [], [])
+                continue
+            window.residuals.append(residual[first:end])
+            window.innovations.append(innovation[first:end][looked_at[first:end]])
+            window.spreads.append(spread[first:end][looked_at[first:end]])
+            first = end
+
+    def _close_window(self, window: _Window) -> None:
+        level_before, path_before = self.cusum.statistic, self.path_statistic
+        self._test_window(window)
+        if level_before == 0.0 < self.cusum.statistic:
+            self._level_onset_s = window.start_s
+        if path_before == 0.0 < self.path_statistic:
+            self._path_onset_s = window.start_s
+
+    def _test_window(self, window: _Window) -> None:
+        residuals = np.concatenate(window.residuals)
+        self.last_window_rms = float(np.sqrt(np.mean(np.square(residuals))))
+        self.cusum.add(self.last_window_rms)
+        innovations, spreads = np.concatenate(window.innovations), np.concatenate(window.spreads)
+        judged = np.isfinite(innovations)
+        reference = self.cusum.reference
+        if not self.memory.built or reference is None:
+            return
+        if innovations.size == 0:
+            return
+        self.coverage = np.count_nonzero(judged) / innovations.size
+        if self.coverage < self.test.min_coverage or np.count_nonzero(judged) < MIN_JUDGED:
+            return
+        self.judged_windows += 1
+        self.last_innovation_rms = float(np.sqrt(np.mean(np.square(innovations[judged]))))
+        expected = max(float(np.mean(spreads[judged])) + self.memory.noise_m**2, (EXPECTED_FLOOR * reference) ** 2)
+        excess = math.sqrt(max(0.0, self.last_innovation_rms**2 - EXPLAINED**2 * expected))
+        step = min(excess / reference - self.test.shift_allowance, self.test.shift_threshold / (WINDOWS_TO_TRIP - 0.5))
+        self.path_statistic = max(0.0, self.path_statistic + step)
+
+    @property
+    def path_drift(self) -> bool:
+        return self.path_statistic > self.test.shift_threshold
+
+    @property
+    def onset_s(self) -> float | None:
+        """Where the change began [s of stage time]: the start of the window from which the test that tripped rose
+        from 0 (None without drift)."""
+        if self.path_drift:
+            return self._path_onset_s
+        return self._level_onset_s if self.cusum.drift else None
 
     @property
     def state(self) -> str:
         """ok or drift (no_model and no_data are the node's to say)."""
-        return "drift" if self.cusum.drift else "ok"
+        return "drift" if self.cusum.drift or self.path_drift else "ok"
 
     @property
     def calibrating(self) -> bool:
         return self.cusum.reference is None
+
+    def restart_tests(self) -> None:
+        """Both statistics back to 0 (the model runs on, the reference and the memory are kept)."""
+        self.cusum.statistic = 0.0
+        self.path_statistic = 0.0

@@ -229,6 +229,18 @@ class WorkerService:
             raise outcome["error"]
         return outcome["response"]
 
+    def run_in_background(self, work: Callable[[], None]) -> None:
+        """Run work in a thread of its own as a call of this service is run (close() cancels and waits for it); an
+        error in it is the caller's to catch."""
+
+        def call() -> None:
+            with cancellable(self.cancel):
+                work()
+
+        thread = threading.Thread(target=call, name=f"{self._node.get_name()}-background", daemon=True)
+        self._calls = [*(running for running in self._calls if running.is_alive()), thread]
+        thread.start()
+
     def _spin(self) -> None:
         try:
             self._executor.spin()

@@ -244,7 +244,8 @@ class CompensatorNode(Node):
                 self.core.reset()
             self.values = candidate
             if rebuild:
-                self.core, self.model_source = core, source
+                self.swap_core(core)
+                self.model_source = source
                 self.publish_model()
             else:
                 for name, value in settings.items():
@@ -266,7 +267,8 @@ class CompensatorNode(Node):
                 response.message = unexpected(error)
             else:
                 with self._lock:
-                    self.core, self.model_source = core, path
+                    self.swap_core(core)
+                    self.model_source = path
                 self.publish_model()
                 response.success, response.message = True, f"reloaded {path}"
         if response.success:
@@ -274,6 +276,13 @@ class CompensatorNode(Node):
         else:
             self.get_logger().warning(f"~/reload: {response.message}")
         return response
+
+    def swap_core(self, core: Compensator) -> None:
+        """Put a new core in force (call with the lock held): while commanding, bumplessly (its loop continues the
+        old one's: the current moves from the last command at most max_current_rate)."""
+        if self.setpoint_m is not None and self.values["enabled"]:
+            core.continue_from(self.core)
+        self.core = core
 
     def on_setpoint(self, message: Float64) -> None:
         """A new position setpoint [m]: answer at once with a command."""

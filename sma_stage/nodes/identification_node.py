@@ -20,13 +20,21 @@ Services (std_srvs/Trigger):
   `~/report`).
 - `~/clear`: empties the buffer.
 
-The model watch (`watch`, sma_stage.nodes.model_watch): the model the compensator publishes on
-`<compensator_name>/model` is run from rest on the applied current and compared with joint_states;
-`~/residual` (sensor_msgs/JointState, the joint's position = measured - predicted [m], stamped as the
-position) and a `/diagnostics` status `<node>: model watch` (state ok, drift, no_model or no_data; WARN on
-drift) say how well it predicts the stage (sma_stage.identify.watch: the drift test).
 - `~/abort_excitation`: stops a running excitation at once (current_cmd 0 A, the compensator enabled again);
   refused in one line when none runs. /diagnostics carries the excitation's progress.
+- `~/rollback`: pushes the model that was in force before the one in force now, started from where the
+  recent record leaves it.
+
+The model watch (`watch`, sma_stage.nodes.model_watch): the model the compensator publishes on
+`<compensator_name>/model` is run on the applied current and compared with joint_states; `~/residual`
+(sensor_msgs/JointState, the joint's position = measured - predicted [m], stamped as the position) and a
+`/diagnostics` status `<node>: model watch` (state ok, drift, no_model or no_data; WARN on drift) say how well
+it predicts the stage (sma_stage.identify.watch: the drift tests). On drift (`on_drift`): `report` logs it;
+`refit` fits the recent record (the last `watch_record` s) in the background and pushes the new model only when
+it predicts the record's held-out tail better than the model in force (sma_stage.identify.history.judge_swap);
+`excite` runs a short excitation (`drift_excite_duration`) and then does the same on it. Every model that goes in
+force (pushed by this node or set on the compensator) is one log line and one entry of the history (the last
+`model_history`), which `~/report` carries under "history".
 
 The recording is aligned as the offline reader aligns a bag (sma_stage.io.rosbag_io): input held at each
 output time; output times are the JointState header stamps unless they run on another clock.
@@ -35,6 +43,7 @@ output time; output times are the JointState header stamps unless they run on an
 from __future__ import annotations
 
 import errno
+import json
 import queue
 import shutil
 import threading
@@ -57,13 +66,15 @@ from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
 from sma_stage.identify.families import check_families
+from sma_stage.identify.history import ModelHistory, judge_swap, started_from
 from sma_stage.identify.pipeline import deployed_held_out, identify_recording
-from sma_stage.identify.watch import DriftTest
+from sma_stage.identify.watch import DriftTest, ModelWatch
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import strict_json
 from sma_stage.io.rosbag_io import joint_index, output_times, unfinished_bags
 from sma_stage.io.series import Series
+from sma_stage.model.identified import any_model_from_yaml_text
 from sma_stage.model.parameters import MAX_OPERATORS
 from sma_stage.nodes._common import (
     COMMAND_QOS,
@@ -83,6 +94,7 @@ from sma_stage.nodes.model_watch import WATCH_PERIOD_S, WatchChannel
 from sma_stage.signals import designed_identification_signal, paper_identification_signal
 
 EXCITATIONS = ("paper", "designed")
+ON_DRIFT = ("report", "refit", "excite")
 STORAGES = ("sqlite3", "mcap")
 DIAGNOSTICS_PERIOD_S = 1.0
 
@@ -128,16 +140,32 @@ IDENTIFICATION_PARAMS = [
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
     Param("watch", True, "watch the compensator's model against the stage: ~/residual and a /diagnostics status",
           read_only=True),
-    Param("watch_window", 20.0, "the watch's window [s of stage time]: the residual's RMS per window feeds the drift "
-          "test", 1.0, 3600.0, read_only=True),
-    Param("watch_allowance", 1.5, "windows up to this times the reference residual count as no change", 1.0, 100.0,
+    Param("watch_window", 20.0, "the watch's window [s of stage time]: the drift tests look at the residual per "
+          "window", 1.0, 3600.0, read_only=True),
+    Param("watch_warmup_windows", 15, "windows after a model goes in force that are not counted (it and the stage settle "
+          "from what came before: an excitation leaves the wires warm for minutes)", 0, 1000, read_only=True),
+    Param("watch_calibration_windows", 60, "windows after the warm-up that measure the model's residual: its level and "
+          "where along the stage's path it is what (the path test's memory)", 1, 100000, read_only=True),
+    Param("watch_shift_allowance", 0.1, "path test: where the stage retraces its path, a residual moved by up to this "
+          "fraction of the reference counts as no change", 0.0, 10.0, read_only=True),
+    Param("watch_shift_threshold", 0.3, "path test: drift when the CUSUM of the moved fraction less the allowance "
+          "exceeds this", 0.01, 100.0, read_only=True),
+    Param("watch_path_radius", 0.2, "path test: how near a remembered path [its standard deviations] counts as the "
+          "same path", 0.001, 10.0, read_only=True),
+    Param("watch_allowance", 1.5, "level test: windows up to this times the largest calibration window count as no "
+          "change", 1.0, 100.0, read_only=True),
+    Param("watch_threshold", 1.5, "level test: drift when the CUSUM of ln(window RMS / (allowance x largest)) "
+          "exceeds this", 0.1, 100.0, read_only=True),
+    Param("watch_record", 900.0, "recent samples the watch keeps [s of stage time]: what a refit on drift fits and "
+          "where a model swapped in starts", 60.0, 86400.0, read_only=True),
+    Param("on_drift", "report", "what the watch's drift does: report (log it), refit (fit the recent record and swap "
+          "only if the new model predicts its held-out tail better), excite (stop tracking, excite "
+          "drift_excite_duration, then the same on that)"),
+    Param("drift_refit_record", 600.0, "on_drift refit: the refit waits for this much of the record from where the "
+          "change began, and fits that [s of stage time; at most watch_record]", 60.0, 86400.0),
+    Param("drift_excite_duration", 300.0, "on_drift excite: the excitation's length [s of signal time]", 1.0, 1e6),
+    Param("model_history", 5, "models in force kept, newest last (~/rollback restores the one before)", 2, 1000,
           read_only=True),
-    Param("watch_threshold", 1.5, "drift when the CUSUM of ln(window RMS / (allowance x reference)) exceeds this",
-          0.1, 100.0, read_only=True),
-    Param("watch_warmup_windows", 3, "windows after a model goes in force that are not counted (it settles from "
-          "rest onto the stage's state)", 0, 1000, read_only=True),
-    Param("watch_calibration_windows", 6, "windows after the warm-up that measure the model's reference level",
-          1, 1000, read_only=True),
     Param("input_topic", "current_applied", "std_msgs/Float64 topic of the current recorded and fitted [A]: what "
           "the stage applied (current_cmd for a stage that does not publish it, or a bag of commands)",
           read_only=True),
@@ -306,12 +334,14 @@ class IdentificationNode(Node):
         self._lock = threading.Lock()
         self.recorder: BagThread | None = None  # set before the handle exists: destroy_node reads them
         self.refit_service: WorkerService | None = None
+        self.rollback_service: WorkerService | None = None
         super().__init__(self.NODE_NAME, **node_options)
         note_started(self)
         try:
             self.values = declare_all(self, IDENTIFICATION_PARAMS)
             self.check_storage(str(self.values["bag_storage"]))
             check_families(list(self.values["families"]))
+            self.check_drift_settings(self.values)
             self.open_bag(str(self.values["record_bag"]), str(self.values["bag_storage"]),
                           bool(self.values["bag_overwrite"]))
         except InputError:
@@ -320,10 +350,15 @@ class IdentificationNode(Node):
         self.inputs: deque[tuple[int, float]] = deque(maxlen=int(self.values["max_samples"]))
         self.outputs: deque[tuple[int, int, float]] = deque(maxlen=int(self.values["max_samples"]))
         self.excite_start_ns: int | None = None
+        self.excite_duration_s = float(self.values["excite_duration"])
         self.excite_timer = None
         self.record_until_ns: int | None = None  # set when an excitation ends with freeze_after_excite
         self.refitting = False
         self.last_report: dict | None = None
+        self.history = ModelHistory(int(self.values["model_history"]))
+        self._push_reason: str | None = None  # why this node pushed the model the compensator publishes next
+        self._refit_after_excitation = False
+        self._drift_refit_from_s: float | None = None  # on_drift refit: fit the recent record from here once it is long
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
         self.report_pub = self.create_publisher(String, "~/report", REPORT_QOS)
@@ -340,15 +375,29 @@ class IdentificationNode(Node):
         if self.values["watch"]:
             test = DriftTest(float(self.values["watch_window"]), float(self.values["watch_allowance"]),
                              float(self.values["watch_threshold"]), int(self.values["watch_calibration_windows"]),
-                             int(self.values["watch_warmup_windows"]))
-            self.watch = WatchChannel(self, str(self.values["compensator_name"]), test,
-                                      float(self.values["excite_time_scale"]), str(self.values["joint_name"]))
-            self.create_timer(WATCH_PERIOD_S, quiet_on_shutdown(self, self.watch.run))
+                             int(self.values["watch_warmup_windows"]), float(self.values["watch_shift_allowance"]),
+                             float(self.values["watch_shift_threshold"]), float(self.values["watch_path_radius"]))
+            self.watch = WatchChannel(self, test, float(self.values["excite_time_scale"]),
+                                      str(self.values["joint_name"]), float(self.values["watch_record"]),
+                                      self.on_drift)
+            self.create_timer(WATCH_PERIOD_S, quiet_on_shutdown(self, self.on_watch_tick))
+        self.create_subscription(String, f"{str(self.values['compensator_name']).rstrip('/')}/model",
+                                 self.on_model_in_force, REPORT_QOS)
         self.refit_service = WorkerService(self, Trigger, "refit", self.on_refit)
+        self.rollback_service = WorkerService(self, Trigger, "rollback", self.on_rollback)
         self.get_logger().info("identification ready"
                                + (f", recording into {self.recorder.path}" if self.recorder else ""))
 
     # --- parameters and the bag ------------------------------------------------------------------
+
+    @staticmethod
+    def check_drift_settings(values: dict[str, object]) -> None:
+        """Refuse an on_drift this node does not know, or a drift refit's record longer than the watch keeps."""
+        if values["on_drift"] not in ON_DRIFT:
+            raise InputError(f"on_drift must be one of {', '.join(ON_DRIFT)}, got {values['on_drift']!r}")
+        if float(values["drift_refit_record"]) > float(values["watch_record"]):
+            raise InputError(f"drift_refit_record {values['drift_refit_record']:g} s is longer than the watch keeps "
+                             f"(watch_record {values['watch_record']:g} s)")
 
     @staticmethod
     def check_storage(storage: str) -> None:
@@ -390,6 +439,7 @@ class IdentificationNode(Node):
         try:
             self.check_storage(str(candidate["bag_storage"]))
             check_families(list(candidate["families"]))
+            self.check_drift_settings(candidate)
             switch = candidate["record_bag"] != self.values["record_bag"]
             if switch:
                 started = self.new_recorder(str(candidate["record_bag"]), str(candidate["bag_storage"]),
@@ -408,9 +458,10 @@ class IdentificationNode(Node):
         self.close_bag()
 
     def destroy_node(self) -> None:
-        """Stop the refit worker, then destroy the node."""
-        if self.refit_service is not None:
-            self.refit_service.close()
+        """Stop the refit and rollback workers, then destroy the node."""
+        for service in (self.refit_service, self.rollback_service):
+            if service is not None:
+                service.close()
         super().destroy_node()
 
     # --- health ----------------------------------------------------------------------------------
@@ -421,8 +472,7 @@ class IdentificationNode(Node):
         recorder = self.recorder
         level, text = DiagnosticStatus.OK, "refitting" if self.refitting else "idle"
         if self.exciting:
-            duration = float(self.values["excite_duration"])
-            text = f"exciting: {self.signal_time_s():.0f} of {duration:g} s of signal"
+            text = f"exciting: {self.signal_time_s():.0f} of {self.excite_duration_s:g} s of signal"
         if recorder is not None and recorder.failure is not None:
             level, text = DiagnosticStatus.ERROR, recorder.failure
         elif recorder is not None and recorder.dropped:
@@ -435,8 +485,8 @@ class IdentificationNode(Node):
             "buffer_outputs": len(self.outputs),
             "exciting": self.exciting,
             "excitation_left_s": round(self.excitation_left_s(), 3) if self.exciting else 0.0,
-            "excitation_progress_pct": (round(100.0 * min(self.signal_time_s() / float(self.values["excite_duration"]),
-                                                          1.0), 1) if self.exciting else 0.0),
+            "excitation_progress_pct": (round(100.0 * min(self.signal_time_s() / self.excite_duration_s, 1.0), 1)
+                                        if self.exciting else 0.0),
             "refitting": self.refitting,
         }
         return DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: identification", message=text,
@@ -517,56 +567,60 @@ class IdentificationNode(Node):
 
     def on_excite(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Start driving the identification signal and return at once."""
+        response.success, response.message = self.start_excitation(float(self.values["excite_duration"]))
+        return response
+
+    def start_excitation(self, duration_s: float) -> tuple[bool, str]:
+        """Drive the identification signal for duration_s [s of signal time]: (started, one line saying so or why
+        not)."""
         if self.exciting:
-            response.success = False
-            response.message = f"an excitation is running ({self.excitation_left_s():.1f} s of signal left)"
-            return response
+            return False, f"an excitation is running ({self.excitation_left_s():.1f} s of signal left)"
         if self.now_ns() == 0:
-            response.success = False
-            response.message = ("no time yet: use_sim_time is true and no /clock message has come (is the stage "
-                                "running with use_sim_time?); the signal would start part-way through")
-            return response
+            return False, ("no time yet: use_sim_time is true and no /clock message has come (is the stage running "
+                           "with use_sim_time?); the signal would start part-way through")
         if self.values["excite_signal"] not in EXCITATIONS:
-            response.success = False
-            response.message = (f"excite_signal must be one of {', '.join(EXCITATIONS)}, got "
-                                f"{self.values['excite_signal']!r}")
-            return response
+            return False, f"excite_signal must be one of {', '.join(EXCITATIONS)}, got {self.values['excite_signal']!r}"
         if self.values["clear_on_excite"]:
-            self.on_clear(request, Trigger.Response())
+            self.on_clear(Trigger.Request(), Trigger.Response())
         with self._lock:
             self.record_until_ns = None
         self.excite_start_ns = self.now_ns()
+        self.excite_duration_s = duration_s
         self.set_compensator_enabled(False)
         self.excite_timer = self.create_timer(1.0 / float(self.values["excite_rate_hz"]),
                                               quiet_on_shutdown(self, self.on_excite_tick))
         self.on_excite_tick()
-        response.success = True
         if self.values["excite_signal"] == "designed":
-            response.message = (f"exciting: the designed signal up to {self.values['excite_amplitude_start']:g} A, "
-                                f"{self.values['excite_duration']:g} s of signal time")
+            message = (f"exciting: the designed signal up to {self.values['excite_amplitude_start']:g} A, "
+                       f"{duration_s:g} s of signal time")
         else:
-            response.message = (f"exciting: {self.values['excite_amplitude_start']:g} A falling to "
-                                f"{self.values['excite_amplitude_end']:g} A, period {self.values['excite_period']:g} s, "
-                                f"{self.values['excite_duration']:g} s of signal time")
-        self.get_logger().info(response.message)
-        return response
+            message = (f"exciting: {self.values['excite_amplitude_start']:g} A falling to "
+                       f"{self.values['excite_amplitude_end']:g} A, period {self.values['excite_period']:g} s, "
+                       f"{duration_s:g} s of signal time")
+        self.get_logger().info(message)
+        return True, message
 
     def excitation_left_s(self) -> float:
         """Seconds of signal time the excitation still runs."""
-        return max(float(self.values["excite_duration"]) - self.signal_time_s(), 0.0)
+        return max(self.excite_duration_s - self.signal_time_s(), 0.0)
 
     def on_excite_tick(self) -> None:
         """Publish the signal's current value; at the end publish zero and stop."""
         if self.excite_timer is None:
             return
         t = self.signal_time_s()
-        duration = float(self.values["excite_duration"])
+        duration = self.excite_duration_s
         if t >= duration:
             self.command_pub.publish(Float64(data=0.0))
             self.stop_excitation()
             frozen = bool(self.values["freeze_after_excite"])
             with self._lock:
                 self.record_until_ns = self.now_ns() if frozen else None
+            if self._refit_after_excitation:
+                self._refit_after_excitation = False
+                self.get_logger().info("excitation on drift finished: refitting it")
+                self.start_guarded_refit("the excitation on drift", self.snapshot)
+                return
             self.get_logger().info("excitation finished: ~/refit can fit it now"
                                    + (" (buffer frozen until ~/clear or ~/excite)" if frozen else ""))
             return
@@ -584,7 +638,8 @@ class IdentificationNode(Node):
         if not self.exciting:
             response.success, response.message = False, "no excitation is running"
             return response
-        done, duration = self.signal_time_s(), float(self.values["excite_duration"])
+        done, duration = self.signal_time_s(), self.excite_duration_s
+        self._refit_after_excitation = False
         self.command_pub.publish(Float64(data=0.0))
         self.stop_excitation()
         response.success = True
@@ -671,8 +726,7 @@ class IdentificationNode(Node):
         finally:
             with self._lock:
                 self.refitting = False
-        self.last_report = report
-        self.report_pub.publish(String(data=report_json(report)))
+        self.publish_report(report)
         response.success, response.message = True, refit_summary(report)
         self.get_logger().info(f"~/refit: {response.message}")
         return response
@@ -691,7 +745,7 @@ class IdentificationNode(Node):
         self.check_held_out(report, series)
         report["model_file"] = self.write_model(found.model)
         report["report_file"] = report_path(report["model_file"])
-        report["compensator"] = self.push(found.model)
+        report["compensator"] = self.push(found.model, "~/refit")
         if not report["compensator"]["pushed"]:
             report["warnings"].append(report["compensator"]["message"])
         if report["report_file"] is not None:
@@ -726,8 +780,16 @@ class IdentificationNode(Node):
             raise InputError(f"cannot write model_file {path}: {error.strerror or error}") from None
         return path
 
-    def push(self, model: AnyModel) -> dict:
-        """Send the whole model to the compensator as one atomic parameter change (its `model`)."""
+    def push(self, model: AnyModel, reason: str) -> dict:
+        """Send the whole model to the compensator as one atomic parameter change (its `model`); reason: why, for
+        the history."""
+        self._push_reason = reason
+        outcome = self._push(model)
+        if not outcome["pushed"]:
+            self._push_reason = None
+        return outcome
+
+    def _push(self, model: AnyModel) -> dict:
         name = self.push_client.srv_name
         if not self.push_client.wait_for_service(timeout_sec=float(self.values["push_timeout"])):
             return {"pushed": False, "message": f"compensator service {name} not available: model not pushed"}
@@ -741,6 +803,142 @@ class IdentificationNode(Node):
         if not result.successful:
             return {"pushed": False, "message": f"compensator refused the model: {result.reason}"}
         return {"pushed": True, "message": f"model set through {name}"}
+
+    # --- the models in force: history, rollback, drift ---------------------------------------------
+
+    def publish_report(self, report: dict | None = None) -> None:
+        """Publish the last refit's report (or this new one) on ~/report with the history of the models in force."""
+        if report is not None:
+            self.last_report = report
+        document = {**(self.last_report or {}), "history": self.history.to_report()}
+        self.report_pub.publish(String(data=report_json(document)))
+
+    def on_model_in_force(self, message: String) -> None:
+        """The compensator's model in force: noted in the history (one log line when it is another one) and
+        watched."""
+        try:
+            document = json.loads(message.data)
+            model = any_model_from_yaml_text(str(document["model"]))
+        except (InputError, ValueError, KeyError, TypeError) as error:
+            self.get_logger().warning(f"the compensator's model cannot be read: {' '.join(str(error).split())}")
+            return
+        source = str(document.get("source", "unknown"))
+        reason, self._push_reason = self._push_reason or "set on the compensator", None
+        held_out = (model.metadata or {}).get("held_out_rms")
+        span = (model.metadata or {}).get("output_span")
+        held_out_pct = 100.0 * float(held_out) / float(span) if held_out and span else None
+        entry = self.history.note(model, source, reason, self.now_ns() * 1e-9, held_out_pct)
+        if entry is not None:
+            self.get_logger().info(f"model in force: {source} ({reason}); {len(self.history.entries)} in the history")
+            self._drift_refit_from_s = None
+            self.publish_report()
+        if self.watch is not None:
+            self.watch.set_model(model, source)
+
+    def on_rollback(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Push the model in force before the one now, started where the recent record leaves it."""
+        previous = self.history.previous
+        if previous is None:
+            response.success, response.message = False, "no model before the one in force to roll back to"
+            return response
+        t_s, current_a, _ = self.watch.recent_arrays() if self.watch is not None else ((), (), ())
+        pushed = self.push(started_from(previous.model, t_s, current_a), f"~/rollback to the model from {previous.source}")
+        response.success = pushed["pushed"]
+        response.message = (f"rolled back to the model from {previous.source} (in force since "
+                            f"{previous.since_s:.1f} s)" if pushed["pushed"] else f"rollback failed: {pushed['message']}")
+        log = self.get_logger().info if pushed["pushed"] else self.get_logger().warning
+        log(f"~/rollback: {response.message}")
+        return response
+
+    def on_watch_tick(self) -> None:
+        """Run the watch; start a refit on drift once the record from the change's onset is long enough."""
+        self.watch.run()
+        start_s = self._drift_refit_from_s
+        if start_s is None:
+            return
+        t_s, _, _ = self.watch.recent_arrays()
+        if len(t_s) and t_s[-1] - start_s >= float(self.values["drift_refit_record"]):
+            self._drift_refit_from_s = None
+            self.start_guarded_refit(f"the record from {start_s:.0f} s, where the change began",
+                                     lambda: self.recent_series(start_s))
+
+    def on_drift(self, watch: ModelWatch) -> None:
+        """The watch turned to drift: act as on_drift says (report: the watch logged it already)."""
+        action = self.values["on_drift"]
+        if action == "refit":
+            self._drift_refit_from_s = watch.onset_s
+            self.get_logger().info(f"drift: a refit follows once {self.values['drift_refit_record']:g} s are "
+                                   f"recorded from where the change began ({watch.onset_s:.0f} s)")
+        elif action == "excite":
+            if self.refitting:
+                self.get_logger().warning("drift: no excitation while a refit runs")
+                return
+            started, message = self.start_excitation(float(self.values["drift_excite_duration"]))
+            self._refit_after_excitation = started
+            if not started:
+                self.get_logger().warning(f"drift: cannot excite: {message}")
+
+    def recent_series(self, from_s: float) -> Series:
+        """The watch's recent record from from_s [s of stage time] on, as a checked Series (InputError when it
+        cannot support a fit)."""
+        t_s, current_a, position_m = self.watch.recent_arrays()
+        kept = t_s >= from_s
+        return make_series(t_s[kept], current_a[kept], position_m[kept], "the watch's recent record",
+                           min_samples=int(self.values["min_samples"]))
+
+    def start_guarded_refit(self, what: str, series: Callable[[], Series]) -> None:
+        """Refit what series() gives in the background; the model in force is replaced only when the new one
+        predicts the held-out tail better."""
+        reason = self.refusal()
+        if reason is not None:
+            self.get_logger().warning(f"refit on drift refused: {reason}")
+            return
+
+        def work() -> None:
+            try:
+                self.guarded_refit(what, series())
+            except InputError as error:
+                self.get_logger().warning(f"refit on drift refused: {error}")
+            except Cancelled:
+                self.get_logger().warning("refit on drift cancelled: the node is stopping (nothing pushed)")
+            except Exception as error:  # noqa: BLE001 -- a failing fit must not take the node down
+                self.get_logger().error(f"refit on drift failed: {type(error).__name__}: "
+                                        f"{' '.join(str(error).split())}")
+            finally:
+                with self._lock:
+                    self.refitting = False
+
+        self.refit_service.run_in_background(work)
+
+    def guarded_refit(self, what: str, series: Series) -> None:
+        """Fit series; push the model if it predicts the held-out tail better than the model in force."""
+        in_force = self.history.current
+        if in_force is None:
+            raise InputError("no model in force is known (has the compensator published ~/model?)")
+        self.get_logger().info(f"refit on drift: fitting {what} ({len(series)} samples)")
+        found = identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
+                                   operators=int(self.values["operators"]) or None,
+                                   diagnose_rounds=int(self.values["diagnose_rounds"]),
+                                   source=f"identification node, refit on drift ({what})",
+                                   workers=int(self.values["diagnose_workers"]),
+                                   families=tuple(self.values["families"]))
+        decision = judge_swap(found.model, in_force.model, series, found.scored_from)
+        report = {**found.report, "swap": {"swapped": decision.swap, "reason": decision.reason,
+                                           "candidate": decision.candidate.to_dict(),
+                                           "in_force": decision.in_force.to_dict()},
+                  "model_file": None, "report_file": None}
+        if decision.swap:
+            t_s, current_a, _ = self.watch.recent_arrays() if self.watch is not None else ((), (), ())
+            model = started_from(found.model, t_s, current_a) if len(t_s) else found.model
+            report["model_file"] = self.write_model(model)
+            report["report_file"] = report_path(report["model_file"])
+            report["compensator"] = self.push(model, f"refit on drift: {decision.reason}")
+            if not report["compensator"]["pushed"]:
+                report["warnings"].append(report["compensator"]["message"])
+            if report["report_file"] is not None:
+                self.write_report(report)
+        self.publish_report(report)
+        self.get_logger().info(f"refit on drift: {decision.reason}")
 
 
 def main(args: list[str] | None = None) -> None:

@@ -1,12 +1,14 @@
-"""The identification node's watch of the model in force (sma_stage.identify.watch): it takes the model the
-compensator publishes on `<compensator>/model`, runs it on the applied current from rest, publishes the
-residual on `~/residual` and its state on /diagnostics."""
+"""The identification node's watch of the model in force (sma_stage.identify.watch): the node hands it the model
+the compensator publishes on `<compensator>/model`; it runs it on the applied current (from where the recent
+record leaves it), publishes the residual on `~/residual` and its state on /diagnostics, keeps the recent record
+(what a refit on drift fits, and where a model swapped in starts) and tells the node when it turns to drift."""
 
 from __future__ import annotations
 
 import json
 import threading
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -15,11 +17,10 @@ from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
-from sma_stage.errors import InputError
-from sma_stage.identify.watch import DriftTest, ModelWatch
+from sma_stage.control.drives import AnyModel
+from sma_stage.identify.watch import DriftTest, ModelWatch, RecentRecord
 from sma_stage.io.rosbag_io import output_times
-from sma_stage.model.identified import any_model_from_yaml_text
-from sma_stage.nodes._common import REPORT_QOS, STATE_PUBLISH_QOS
+from sma_stage.nodes._common import STATE_PUBLISH_QOS
 
 WATCH_PERIOD_S = 0.2  # the queued samples are run through the model this often
 QUEUE_LENGTH = 100_000  # samples kept for the watch between two runs [messages per topic]
@@ -32,36 +33,40 @@ def model_message(model_yaml: str, source: str) -> String:
 
 class WatchChannel:
     """The watch's inputs, its model and its outputs, for one node (`owner`): time_scale gives stage seconds
-    per node-clock second; joint_name the joint of joint_states."""
+    per node-clock second; joint_name the joint of joint_states; record_s the stage seconds of recent samples
+    kept; on_drift is called (from the owner's executor) when the watch turns to drift."""
 
-    def __init__(self, owner: Node, compensator: str, test: DriftTest, time_scale: float, joint_name: str) -> None:
+    def __init__(self, owner: Node, test: DriftTest, time_scale: float, joint_name: str, record_s: float,
+                 on_drift: Callable[[ModelWatch], None]) -> None:
         self.owner, self.test, self.time_scale, self.joint_name = owner, test, time_scale, joint_name
+        self.on_drift = on_drift
         self._lock = threading.Lock()
         self._inputs: deque[tuple[int, float]] = deque(maxlen=QUEUE_LENGTH)
         self._outputs: deque[tuple[int, int, float]] = deque(maxlen=QUEUE_LENGTH)
         self._last_input: tuple[int, float] | None = None
+        self.recent = RecentRecord(record_s)
         self.watch: ModelWatch | None = None
         self.source = "none"
         self.since_ns: int | None = None
         self.last_sample_ns: int | None = None
         self._reported_state = "no_model"
         self.residual_pub = owner.create_publisher(JointState, "~/residual", STATE_PUBLISH_QOS)
-        owner.create_subscription(String, f"{compensator.rstrip('/')}/model", self.on_model, REPORT_QOS)
 
-    def on_model(self, message: String) -> None:
-        """A new model in force: the watch starts again with it (a bad message is logged and ignored)."""
-        try:
-            document = json.loads(message.data)
-            model = any_model_from_yaml_text(str(document["model"]))
-        except (InputError, ValueError, KeyError, TypeError) as error:
-            self.owner.get_logger().warning(f"model watch: the compensator's model cannot be read: {error}")
-            return
+    def set_model(self, model: AnyModel, source: str) -> None:
+        """A new model in force: the watch starts again with it, from where the recent record leaves it."""
         with self._lock:
-            self.watch = ModelWatch(model, self.test)
-            self.source = str(document.get("source", "unknown"))
+            t_s, current_a, _ = self.recent.arrays()
+            self.watch = ModelWatch(model, self.test, history=(t_s, current_a))
+            self.source = source
             self.since_ns = self.owner.get_clock().now().nanoseconds
             self._outputs.clear()
-        self.owner.get_logger().info(f"model watch: watching the model from {self.source}")
+            self._reported_state = "ok"
+        self.owner.get_logger().info(f"model watch: watching the model from {source}")
+
+    def recent_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The recent record: (t [s of stage time], applied current [A], position [m])."""
+        with self._lock:
+            return self.recent.arrays()
 
     def add_input(self, receive_ns: int, value: float) -> None:
         with self._lock:
@@ -69,19 +74,18 @@ class WatchChannel:
 
     def add_output(self, receive_ns: int, stamp_ns: int, position: float) -> None:
         with self._lock:
-            if self.watch is not None:
-                self._outputs.append((receive_ns, stamp_ns, position))
+            self._outputs.append((receive_ns, stamp_ns, position))
 
     def run(self) -> None:
         """Run the queued positions through the model and publish their residuals."""
         with self._lock:
-            watch, outputs = self.watch, list(self._outputs)
+            outputs = list(self._outputs)
             inputs = ([self._last_input] if self._last_input is not None else []) + list(self._inputs)
             self._outputs.clear()
             self._inputs.clear()
             if inputs:
                 self._last_input = inputs[-1]
-        if watch is None or not outputs or not inputs:
+        if not outputs or not inputs:
             return
         receive_ns, stamp_ns, positions = (np.array(column) for column in zip(*outputs, strict=True))
         times_ns = output_times(receive_ns.astype(np.int64), stamp_ns.astype(np.int64))
@@ -97,8 +101,14 @@ class WatchChannel:
             return
         kept_ns, measured = times_ns[usable], positions[usable].astype(float)
         held = values[in_order][latest[usable]].astype(float)
-        residual = watch.step(kept_ns * 1e-9 * self.time_scale, held, measured)
+        stage_s = kept_ns * 1e-9 * self.time_scale
         self.last_sample_ns = int(kept_ns[-1])
+        with self._lock:  # a model set from here on starts from the record with these samples in it
+            self.recent.add(stage_s, held, measured)
+            watch = self.watch
+        if watch is None:
+            return
+        residual = watch.step(stage_s, held, measured)
         for time_ns, value in zip(kept_ns, residual, strict=True):
             message = JointState(name=[self.joint_name], position=[float(value)])
             message.header.stamp = Time(nanoseconds=int(time_ns)).to_msg()
@@ -107,14 +117,22 @@ class WatchChannel:
 
     def _log_change(self, watch: ModelWatch) -> None:
         state = watch.state
-        if state != self._reported_state:
-            if state == "drift":
-                self.owner.get_logger().warning(
-                    f"model watch: drift: the residual's RMS {watch.last_window_rms:.3g} m is above "
-                    f"{self.test.allowance:g} x its reference {watch.cusum.reference:.3g} m long enough "
-                    f"(statistic {watch.cusum.statistic:.3g} > {self.test.threshold:g}): the model in force "
-                    "no longer describes the stage")
-            self._reported_state = state
+        if state == self._reported_state:
+            return
+        self._reported_state = state
+        if state != "drift":
+            return
+        if watch.path_drift:
+            evidence = (f"where the stage retraces its path the residual moved by {watch.last_innovation_rms:.3g} m "
+                        f"RMS (path statistic {watch.path_statistic:.3g} > {self.test.shift_threshold:g}, reference "
+                        f"{watch.cusum.reference:.3g} m)")
+        else:
+            evidence = (f"the residual's RMS {watch.last_window_rms:.3g} m rose above {self.test.allowance:g} x the "
+                        f"largest while calibrating {watch.cusum.ceiling:.3g} m (level statistic "
+                        f"{watch.cusum.statistic:.3g} > {self.test.threshold:g})")
+        self.owner.get_logger().warning(f"model watch: drift: {evidence}: the model in force no longer describes "
+                                        "the stage")
+        self.on_drift(watch)
 
     def state(self) -> str:
         """ok, drift, no_model or no_data."""
@@ -138,8 +156,11 @@ class WatchChannel:
                 "residual_rms_pct_of_stroke": (round(100.0 * rms / float(span), 3) if rms is not None and span
                                                else "unknown"),
                 "reference_rms_m": reference if reference is not None else "calibrating",
-                "drift_statistic": round(watch.cusum.statistic, 4),
-                "drift_threshold": self.test.threshold,
+                "drift_statistic": round(watch.path_statistic, 4),
+                "drift_threshold": self.test.shift_threshold,
+                "path_coverage": round(watch.coverage, 3) if watch.coverage is not None else "none",
+                "level_statistic": round(watch.cusum.statistic, 4),
+                "level_threshold": self.test.threshold,
                 "windows": watch.cusum.windows,
                 "model_age_s": round((now_ns - self.since_ns) * 1e-9, 1) if self.since_ns is not None else "none",
             })
@@ -148,7 +169,7 @@ class WatchChannel:
                    "no_data": "no joint_states and applied current to compare",
                    "drift": "drift: the model in force no longer describes the stage"}[state]
         if state == "ok" and watch is not None and watch.calibrating:
-            message = "calibrating: measuring the residual's level over the first windows"
+            message = "calibrating: learning the residual along the stage's path"
         return DiagnosticStatus(level=level, name=f"{self.owner.get_fully_qualified_name()}: model watch",
                                 message=message, hardware_id="sma_stage model watch",
                                 values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])

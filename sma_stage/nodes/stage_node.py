@@ -70,9 +70,9 @@ MAX_CATCH_UP_STEPS = 5
 LATE_FACTOR = 1.5  # a cycle is late when it starts more than this many periods after the previous one
 FIRST_RECONNECT_S = 1.0
 
-_EFFECT_UNITS = {"ambient_drift_k_per_s": "K/s", "sensor_delay_s": "s", "creep_amplitude_m": "m",
-                 "creep_time_constant_s": "s", "creep_reference_m": "m", "load_change_n": "N",
-                 "load_change_time_s": "s (simulated)"}
+_EFFECT_UNITS = {"ambient_drift_k_per_s": "K/s", "ambient_drift_start_s": "s (simulated)", "sensor_delay_s": "s",
+                 "creep_amplitude_m": "m", "creep_time_constant_s": "s", "creep_reference_m": "m",
+                 "creep_start_s": "s (simulated)", "load_change_n": "N", "load_change_time_s": "s (simulated)"}
 
 
 def effect_params() -> list[Param]:

@@ -150,19 +150,23 @@ class Effects:
     """Effects a user or a test can switch on (all off by default); nothing tells the identification."""
 
     ambient_drift_k_per_s: float = 0.0
+    ambient_drift_start_s: float = 0.0
     sensor_delay_s: float = 0.0
     creep_amplitude_m: float = 0.0
     creep_time_constant_s: float = 200.0
     creep_reference_m: float = 0.5e-3
+    creep_start_s: float = 0.0
     load_change_n: float = 0.0
     load_change_time_s: float = 0.0
 
     _RANGES = {
         "ambient_drift_k_per_s": (-1.0, 1.0),
+        "ambient_drift_start_s": (0.0, 1e9),
         "sensor_delay_s": (0.0, 60.0),
         "creep_amplitude_m": (-1e-2, 1e-2),
         "creep_time_constant_s": (1e-3, 1e6),
         "creep_reference_m": (1e-7, 1.0),
+        "creep_start_s": (0.0, 1e9),
         "load_change_n": (-1e4, 1e4),
         "load_change_time_s": (0.0, 1e9),
     }
@@ -218,4 +222,6 @@ def pack_parameters(config: StageConfig, effects: Effects) -> np.ndarray:
     p[ph.P_LOAD_TIME] = effects.load_change_time_s
     p[ph.P_CONDUCTANCE] = config.thermal_conductivity_w_m_k * area
     p[ph.P_NODES] = int(config.wire_nodes)
+    p[ph.P_AMBIENT_DRIFT_START] = effects.ambient_drift_start_s
+    p[ph.P_CREEP_START] = effects.creep_start_s
     return p

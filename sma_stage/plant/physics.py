@@ -45,7 +45,9 @@ P_LOAD_FORCE = 29  # N
 P_LOAD_TIME = 30  # s
 P_CONDUCTANCE = 31  # W m/K: thermal conductivity * cross-section
 P_NODES = 32  # nodes per half wire
-N_PARAMETERS = 33
+P_AMBIENT_DRIFT_START = 33  # s
+P_CREEP_START = 34  # s
+N_PARAMETERS = 35
 
 # State vector layout: scalars, then per wire (A = 0, B = 1) three blocks of P_NODES values:
 # node temperatures [K], detwinned (strain-carrying) and twinned martensite fractions, from the
@@ -443,7 +445,7 @@ def _advance(p, s, current, dt, table_a, table_b, scratch):
     current_b = -current if current < 0.0 else 0.0
     for _ in range(n_sub):
         t_mid = s[S_TIME] + 0.5 * h
-        ambient = p[P_AMBIENT] + p[P_AMBIENT_DRIFT] * t_mid
+        ambient = p[P_AMBIENT] + p[P_AMBIENT_DRIFT] * max(0.0, t_mid - p[P_AMBIENT_DRIFT_START])
         _wire_temperatures(p, s, 0, current_a, ambient, h, table_a[R_TEMPERATURE], scratch)
         _wire_temperatures(p, s, 1, current_b, ambient, h, table_b[R_TEMPERATURE], scratch)
         _prepare(p, s, 0, table_a)
@@ -452,7 +454,7 @@ def _advance(p, s, current, dt, table_a, table_b, scratch):
         load = external_force(p, s[S_TIME])
         u = _solve_balance(p, s, table_a, table_b, load)
         _commit_balance(p, s, u, table_a, table_b)
-        if p[P_CREEP_AMPLITUDE] != 0.0:
+        if p[P_CREEP_AMPLITUDE] != 0.0 and s[S_TIME] > p[P_CREEP_START]:
             drive = min(1.0, max(-1.0, p[P_LEVER] * u / p[P_CREEP_REFERENCE]))
             target = p[P_CREEP_AMPLITUDE] * drive
             s[S_CREEP] = target + (s[S_CREEP] - target) * math.exp(-h / p[P_CREEP_TAU])

@@ -1,0 +1,142 @@
+"""The model watch through the three node executables on simulated time: excite and refit, then tracking a sine
+with the PI loop while the watch learns the residual along the path; a load step of the simulated stage is
+flagged, the refit on drift swaps in a model fitted after the step that tracks as well as before it, and
+~/rollback restores the model before it."""
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import Float64, String  # noqa: E402
+from test_end_to_end import refit_after_excitation  # noqa: E402
+
+from sma_stage.model.identified import any_model_from_yaml_text  # noqa: E402
+from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
+from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, wait_for  # noqa: E402
+
+TIME_SCALE = 50.0  # simulated s per wall s: one 0.5 s stage step every 10 ms
+STEP_S = 0.5  # simulated s per stage step, control period and setpoint
+EXCITE_S = 500.0
+LOAD_STEP_S = 3000.0  # the stage's load step [s of simulated time]: after the refit and the watch's calibration
+LOAD_STEP_N = 8.0  # the 2 N of the bench is flagged too (bench/bench_watch.py); here the test must not be marginal
+PERIOD_S = 100.0  # the tracked sine's
+COMPARED_S = 300.0  # tracking error compared over this long before the step and after the swap
+
+
+class Tracking:
+    """Publishes a sine setpoint at the simulated time and records the position, the model watch's state and
+    ~/report."""
+
+    def __init__(self, client: RosClient) -> None:
+        self.client, self.middle, self.amplitude = client, 0.0, 0.0
+        self.stamps: list[float] = []
+        self.positions: list[float] = []
+        self.watch_states: list[tuple[float, str]] = []
+        self.reports: list[dict] = []
+        self.publisher = client.node.create_publisher(Float64, "setpoint", COMMAND_QOS)
+        client.node.create_subscription(JointState, "joint_states", self.on_state, STATE_SUBSCRIBE_QOS)
+        client.node.create_subscription(DiagnosticArray, "/diagnostics", self.on_diagnostics, 100)
+        client.node.create_subscription(String, "identification/report",
+                                        lambda m: self.reports.append(json.loads(m.data)), REPORT_QOS)
+
+    def setpoint(self, t_s: float) -> float:
+        return self.middle + self.amplitude * np.sin(2 * np.pi * t_s / PERIOD_S)
+
+    def on_state(self, message: JointState) -> None:
+        self.stamps.append(message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec)
+        self.positions.append(message.position[0])
+
+    def on_diagnostics(self, message: DiagnosticArray) -> None:
+        for status in message.status:
+            if status.name.endswith("model watch"):
+                values = {item.key: item.value for item in status.values}
+                self.watch_states.append((message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec,
+                                          values["state"]))
+
+    def until(self, predicate, wall_timeout_s: float, what: str, check) -> None:
+        """Keep the setpoint following the sine until predicate() holds."""
+
+        def tracked() -> bool:
+            # the value for the compensator's next tick: the same setpoint at each tick, however late this runs
+            next_tick_s = STEP_S * math.ceil(self.client.now_s() / STEP_S)
+            self.publisher.publish(Float64(data=float(self.setpoint(next_tick_s))))
+            return predicate()
+
+        wait_for(tracked, wall_timeout_s, what, check, poll_s=0.005)
+
+    def tracking_rms_m(self, start_s: float, stop_s: float) -> float:
+        stamps, positions = np.array(self.stamps), np.array(self.positions)
+        kept = (stamps >= start_s) & (stamps < stop_s)
+        return float(np.sqrt(np.mean((positions[kept] - self.setpoint(stamps[kept])) ** 2)))
+
+
+def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    with NodeProcesses(tmp_path / "nodes", domain) as nodes:
+        nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0,
+                                   "use_sim_time": True, "load_change_n": LOAD_STEP_N,
+                                   "load_change_time_s": LOAD_STEP_S}, [CONFIG_DIR / "stage.yaml"])
+        nodes.start("compensator_node", {"rate_hz": 1.0 / STEP_S, "use_sim_time": True},
+                    [CONFIG_DIR / "compensator.yaml"])
+        nodes.start("identification_node", {"excite_duration": EXCITE_S, "excite_rate_hz": 1.0 / STEP_S, "operators": 5,
+                                             "min_samples": 60, "model_file": str(tmp_path / "model.yaml"),
+                                             "use_sim_time": True, "watch_calibration_windows": 40,
+                                             "on_drift": "refit", "drift_refit_record": 400.0},
+                    [CONFIG_DIR / "identification.yaml"])
+        with RosClient(domain, "watch_test", use_sim_time=True) as client:
+            client.wait_for_services(["stage/stop", "compensator/reload", "identification/refit",
+                                      "identification/rollback"], 60.0, nodes.check_running)
+            tracking = Tracking(client)
+            first = refit_after_excitation(client, nodes.check_running)
+            assert first["compensator"]["pushed"], first["compensator"]["message"]
+            refitted = client.get_parameters("compensator", ["model"])["model"]
+            low, high = min(tracking.positions), max(tracking.positions)
+            tracking.middle, tracking.amplitude = 0.5 * (low + high), 0.3 * (high - low)
+            started_s = client.now_s()
+            assert started_s + 1500.0 < LOAD_STEP_S, f"the refit took until {started_s:.0f} s of simulated time"
+
+            def watch_state_at(time_s: float) -> str | None:
+                seen = [state for stamp, state in tracking.watch_states if stamp >= time_s]
+                return seen[0] if seen else None
+
+            tracking.until(lambda: client.now_s() >= LOAD_STEP_S - 1.0, 120.0, "the load step", nodes.check_running)
+            before = [state for stamp, state in tracking.watch_states if started_s + 1000.0 <= stamp < LOAD_STEP_S]
+            assert before and set(before) == {"ok"}, "nothing changed: the watch stays ok"
+            tracking.until(lambda: watch_state_at(LOAD_STEP_S) is not None and
+                           any(state == "drift" for stamp, state in tracking.watch_states if stamp >= LOAD_STEP_S),
+                           60.0, "drift", nodes.check_running)
+            flagged_s = next(stamp for stamp, state in tracking.watch_states if stamp >= LOAD_STEP_S and
+                             state == "drift")
+            assert flagged_s - LOAD_STEP_S <= 120.0, f"flagged {flagged_s - LOAD_STEP_S:.0f} s after the step"
+
+            tracking.until(lambda: any("swap" in report for report in tracking.reports), 120.0,
+                           "the refit on drift", nodes.check_running)
+            swap = next(report for report in tracking.reports if "swap" in report)["swap"]
+            assert swap["swapped"], swap["reason"]
+            swapped_s = client.now_s()
+            tracking.until(lambda: client.now_s() >= swapped_s + COMPARED_S, 60.0, "tracking after the swap",
+                           nodes.check_running)
+            error_before = tracking.tracking_rms_m(LOAD_STEP_S - COMPARED_S, LOAD_STEP_S)
+            error_after = tracking.tracking_rms_m(swapped_s, swapped_s + COMPARED_S)
+            assert error_after <= 1.5 * error_before, (error_before, error_after)
+
+            in_force = client.get_parameters("compensator", ["model"])["model"]
+            assert any_model_from_yaml_text(in_force).without_state() != \
+                any_model_from_yaml_text(refitted).without_state(), "the refit on drift is in force"
+            ok, message = client.trigger("identification/rollback", timeout_s=30.0)
+            assert ok, message
+            wait_for(lambda: any_model_from_yaml_text(client.get_parameters("compensator", ["model"])["model"])
+                     .without_state() == any_model_from_yaml_text(refitted).without_state(), 10.0,
+                     "the model before to be in force again", nodes.check_running)
+            history = client.latest(String, "identification/report", REPORT_QOS)
+            reasons = [entry["reason"] for entry in json.loads(history.data)["history"]]
+            assert reasons[-1].startswith("~/rollback") and reasons[-2].startswith("refit on drift"), reasons
+        exits = nodes.stop_all()
+    assert exits == {"stage_node": 0, "compensator_node": 0, "identification_node": 0}, exits
