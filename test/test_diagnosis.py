@@ -3,6 +3,7 @@ effect injected and not declared (test/synthetic.py simulates it independently o
 
 import functools
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -104,6 +105,16 @@ def test_workers_started_in_the_background_answer_in_order_and_close():
     unused.start()
     unused.close()
     assert unused._executor is None and unused._starting is None
+
+
+def _niceness(_: int, progress=None) -> int:
+    return os.getpriority(os.PRIO_PROCESS, 0)
+
+
+def test_worker_processes_run_at_a_lower_priority_than_their_parent():
+    """A refit's workers yield the CPU to a stage on the same computer (bench/bench_long_refit.py)."""
+    with Workers(2) as pool:
+        assert set(pool.run(_niceness, [(1,), (2,)], None, "{}")) == {os.getpriority(os.PRIO_PROCESS, 0) + 10}
 
 
 def test_workers_that_cannot_start_give_a_one_line_error(monkeypatch):

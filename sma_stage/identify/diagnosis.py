@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import os
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -460,7 +462,7 @@ class Workers:
         try:
             context = multiprocessing.get_context("forkserver")
             context.set_forkserver_preload([__name__])
-            executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=one_blas_thread)
+            executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=_worker_setup)
             for _ in range(self.workers):
                 executor.submit(warm_up)
         except (OSError, RuntimeError, ValueError) as error:
@@ -503,6 +505,28 @@ def one_blas_thread() -> threadpool_limits:
     or for good. The fits' matrices are small (about 12 x 12 after the QR compression): OpenBLAS's threads
     cost more than they give, and with Workers they fight over the cores (bench/README.md, Diagnosis)."""
     return threadpool_limits(1, user_api="blas")
+
+
+WORKER_NICENESS = 10  # the workers yield the CPU to a stage or a node on the same computer
+
+
+def _worker_setup() -> None:
+    """A worker process: BLAS on one thread, and a lower priority than the process that started it."""
+    one_blas_thread()
+    lower_priority()
+
+
+def lower_priority(thread: bool = False) -> None:
+    """Lower this process's scheduling priority (or only the calling thread's, on Linux) by WORKER_NICENESS, so
+    that a long fit yields the CPU to a stage's control cycle; nothing where the system does not allow it."""
+    try:
+        if thread and sys.platform.startswith("linux"):
+            identity = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, identity, os.getpriority(os.PRIO_PROCESS, identity) + WORKER_NICENESS)
+        elif not thread:
+            os.nice(WORKER_NICENESS)
+    except (OSError, AttributeError):
+        pass
 
 
 def warm_up() -> None:

@@ -22,6 +22,7 @@ from sma_stage.model.identified import IdentifiedModel, Start
 from sma_stage.model.two_wire import TwoWireModel
 
 MIN_HELD_OUT = 10
+FIT_SAMPLES = 20_000  # a longer record is fitted on a copy thinned to about this many samples (max_fit_samples)
 GPI_MODEL_FILE = "model_gpi.yaml"  # gpi_tool writes the GPI family's model here when another family is chosen
 
 Progress = Callable[[str], None] | None
@@ -46,7 +47,7 @@ class Identification:
 def identify_recording(record: Series, validation: Series | None = None, holdout_fraction: float | None = None,
                        operators: int | None = None, diagnose_rounds: int = 0, output_unit: str = "m",
                        progress: Progress = None, source: str = "", workers: int = 1,
-                       families: Sequence[str] = ("gpi",)) -> Identification:
+                       families: Sequence[str] = ("gpi",), max_fit_samples: int | None = None) -> Identification:
     """Identify the model of a record (t [s], input [A], output [output_unit]).
 
     Validation: a separate record (`validation`, run from an idle stage), or the held-out tail of this one
@@ -59,9 +60,18 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     families (sma_stage.identify.families.FAMILIES): with validation data and more than the GPI named, each
     family is fitted on the same record and the one chosen by held-out error and BIC is deployed; the report's
     "families" table says what each gave. The compensator runs the model of either family.
+
+    max_fit_samples (None: FIT_SAMPLES; 0: never): a longer record is fitted, diagnosed and compared on a copy
+    thinned by whole blocks to at most that many samples (Series.thinned; a validation record with the same
+    block); hysteresis and the wires' lag are slow next to the rates that make records that long. The model's
+    state and the report's "thinned" entry (with the deployed model's errors on the full-rate held-out samples)
+    come from the full record.
     """
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
+    full_record, full_validation = record, validation
+    block = _thinning_block(len(record), FIT_SAMPLES if max_fit_samples is None else max_fit_samples)
+    record, validation = record.thinned(block), validation.thinned(block) if validation is not None else None
     ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
     with one_blas_thread():
         fit = fit_gpi(ident.input, ident.output, operators=operators, output_unit=output_unit, progress=progress)
@@ -78,7 +88,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
             warnings.append(f"diagnosis failed, the plain GPI fit is kept: {type(error).__name__}: "
                             f"{' '.join(str(error).split())}")
     model = found.chain.model if found is not None else IdentifiedModel(fit.parameters, fit.operators)
-    continued = record if holdout_fraction is not None else ident
+    continued = full_record if holdout_fraction is not None else _head(full_record, block, len(ident))
     start = found.starts["identification"].start if found is not None else Start("rest")
     _, end_state = model.run(continued.t, continued.input, model.start_state(continued.t, continued.input, start))
     metadata = {"source": source or record.source, "samples": len(continued)}
@@ -97,11 +107,40 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
         span = float(np.ptp(valid.output[scored_from:]))
         model = replace(model, metadata={**model.metadata, "held_out_rms": held_out["rms_pct"] / 100.0 * span,
                                          "output_span": float(np.ptp(record.output))})
+    if block > 1:
+        report["thinned"] = _thinned_entry(model, full_record, full_validation, holdout_fraction, block, len(record),
+                                           scored_from)
     report["identified_model"] = model.without_state().to_dict()
     report["compensation"] = compensation_notes(model)
     report["warnings"] = list(warnings)
     return Identification(model, fit, found, report, warnings, valid, scored_from,
                           gpi_model if isinstance(model, TwoWireModel) else None)
+
+
+def _thinning_block(samples: int, limit: int) -> int:
+    """Samples per block that bring a record of `samples` to at most `limit` (1: not thinned; limit 0: never)."""
+    if limit <= 0 or samples <= limit:
+        return 1
+    return -(-samples // limit)
+
+
+def _head(full: Series, block: int, thinned_samples: int) -> Series:
+    """The full-rate samples a thinned head of thinned_samples covers."""
+    return full.slice(None, len(full) % block + block * thinned_samples) if block > 1 else full.slice(None, thinned_samples)
+
+
+def _thinned_entry(model: IdentifiedModel | TwoWireModel, full_record: Series, full_validation: Series | None,
+                   holdout_fraction: float | None, block: int, fitted: int, scored_from: int) -> dict:
+    """The report's "thinned": how the record was thinned and the deployed model's errors on the full-rate
+    validation samples (the held-out tail's, or the validation record's), run from rest."""
+    entry: dict[str, object] = {"samples": len(full_record), "fitted_samples": fitted, "block": block}
+    if full_validation is None and holdout_fraction is None:
+        return entry
+    valid = full_validation if full_validation is not None else full_record
+    first = 0 if full_validation is not None else len(full_record) % block + block * scored_from
+    predicted = model.without_state().predict(valid.t, valid.input)
+    entry["validation_full_rate"] = error_metrics(valid.output[first:], predicted[first:]).to_dict()
+    return entry
 
 
 def deployed_held_out(report: dict) -> dict | None:

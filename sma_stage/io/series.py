@@ -73,6 +73,17 @@ class Series:
         first, last = np.searchsorted(self.t, [t_start, t_stop], side="left")
         return self.slice(int(first), int(last))
 
+    def thinned(self, block: int) -> Series:
+        """Every block samples as one: the input averaged over the block (the heat it brought to first order), the
+        time and the output at the block's last sample; the first len % block samples are dropped, so the last
+        sample stays."""
+        if block <= 1:
+            return self
+        start = len(self) % block
+        inputs = self.input[start:].reshape(-1, block).mean(axis=1)
+        ends = slice(start + block - 1, None, block)
+        return Series(self.t[ends], inputs, self.output[ends], self.source, self.time_is_index)
+
     def split(self, fraction: float) -> tuple[Series, Series]:
         """(first, rest): the first `fraction` of the samples and the remainder, e.g. for held-out validation."""
         if not 0.0 < fraction < 1.0:

@@ -65,6 +65,7 @@ from std_srvs.srv import Trigger
 from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
+from sma_stage.identify.diagnosis import lower_priority
 from sma_stage.identify.families import check_families
 from sma_stage.identify.history import ModelHistory, judge_swap, started_from
 from sma_stage.identify.pipeline import deployed_held_out, identify_recording
@@ -99,7 +100,8 @@ STORAGES = ("sqlite3", "mcap")
 DIAGNOSTICS_PERIOD_S = 1.0
 
 IDENTIFICATION_PARAMS = [
-    Param("max_samples", 200000, "ring buffer length per topic [messages]; the oldest are dropped", 100, 10**8,
+    Param("max_samples", 400000, "ring buffer length per topic [messages; an hour at 100 Hz is 360,000]; the oldest "
+          "are dropped", 100, 10**8,
           read_only=True),
     Param("min_samples", 100, "fewest aligned samples a refit accepts", 20, 10**8),
     Param("holdout_fraction", 0.25, "tail of the recording held out for validation", 0.05, 0.5),
@@ -732,7 +734,9 @@ class IdentificationNode(Node):
         return response
 
     def refit(self) -> dict:
-        """Identify, write the model file, push the model; the report (InputError when refused)."""
+        """Identify, write the model file, push the model; the report (InputError when refused). Runs at a lower
+        priority than the node's other threads (a stage on the same computer keeps its cycles)."""
+        lower_priority(thread=True)
         series = self.snapshot()
         self.get_logger().info(f"~/refit: fitting {len(series)} samples")
         found = identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
@@ -895,6 +899,7 @@ class IdentificationNode(Node):
             return
 
         def work() -> None:
+            lower_priority(thread=True)
             try:
                 self.guarded_refit(what, series())
             except InputError as error:
