@@ -48,6 +48,13 @@ def worker_count(text: str) -> int:
     return int(text)
 
 
+def sample_budget(text: str) -> int:
+    """0, or a whole number of at least 1,000 (argparse type)."""
+    if not text.strip().isdigit() or 0 < int(text) < 1000:
+        raise argparse.ArgumentTypeError(f"expected 0 or a whole number of at least 1000, got {text!r}")
+    return int(text)
+
+
 def round_count(text: str) -> int:
     """An integer from 1 to 4 (argparse type)."""
     if not text.strip().isdigit() or not 1 <= int(text) <= 4:
@@ -126,6 +133,9 @@ def add_data_arguments(parser: argparse.ArgumentParser, validate_required: bool)
                                  "(as ~/refit does with its holdout_fraction)")
     parser.add_argument("--operators", type=operator_count, default=None,
                         help="operator count (default: chosen from the data)")
+    parser.add_argument("--max-fit-samples", type=sample_budget, default=None,
+                        help="fit a longer record on a copy thinned by whole blocks to at most this many samples, "
+                             "scored on every sample (default 20000; 0: never thin)")
     add_reading_arguments(parser, "current_cmd")
     parser.add_argument("--out", type=Path, default=Path("out/identification"), help="folder for the results")
     parser.add_argument("--json", action="store_true", help="print the JSON report (and nothing else) on stdout")

@@ -10,6 +10,7 @@ from independent_plant import NOISE_PCT, TRUTH, make_records
 from sma_stage.identify.diagnosis import diagnose
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io.csv_io import read_csv
+from sma_stage.io.series import make_series
 from sma_stage.model import GPIInverseStream
 
 DATA = Path(__file__).parent / "data"
@@ -84,3 +85,32 @@ def test_the_exact_inverse_recovers_the_measured_input_from_the_measured_output(
     assert np.sqrt(np.mean(error**2)) < 4.0  # the whole record (measured: 3.37 %)
     settled = slice(100, None)  # after its first 0.5 s, the sensor settling from below the loop
     assert np.sqrt(np.mean(error[settled] ** 2)) < 3.0  # measured: 2.65 %
+
+
+def test_a_record_thinned_for_its_fit_is_scored_on_every_sample_and_a_costly_thinning_is_said():
+    """A 2 s lag sampled at 10 Hz, thinned fourfold (the input averaged over 0.4 s blocks): the effect is named
+    again, the report scores the model on every validation sample, and since that is far worse than on the
+    thinned samples (and than the fit of every sample), a warning says to fit every sample. On the stage
+    simulator's 100 Hz records thinning costs nothing (bench/bench_long_refit.py)."""
+    ident, valid = make_records("thermal_lag", seed=0)
+    ident_series, valid_series = (make_series(r.t, r.u, r.y, name) for r, name in ((ident, "ident"), (valid, "valid")))
+    limit = len(ident_series) // 4
+    full = identify_recording(ident_series, valid_series, diagnose_rounds=1, max_fit_samples=0)
+    thinned = identify_recording(ident_series, valid_series, diagnose_rounds=1, max_fit_samples=limit)
+    assert "thinned" not in full.report and full.warnings == []
+    entry = thinned.report["thinned"]
+    assert entry["samples"] == len(ident_series) and entry["fitted_samples"] <= limit and entry["block"] == 4
+    assert thinned.model.effect_names == full.model.effect_names == ["thermal_lag"]
+    full_rate = entry["validation_full_rate"]
+    assert full_rate["samples"] == len(valid_series)
+    assert full_rate["rms_pct"] > 2 * full.report["diagnosis"]["after"]["validation"]["rms_pct"]
+    assert any("max_fit_samples 0" in warning for warning in thinned.warnings), thinned.warnings
+
+
+def test_thinning_averages_the_input_over_each_block_and_keeps_the_last_sample():
+    series = make_series(np.arange(10.0), np.arange(10.0) ** 2, np.arange(10.0) * 3.0, "ten", min_samples=1)
+    thinned = series.thinned(4)
+    np.testing.assert_array_equal(thinned.t, [5.0, 9.0])
+    np.testing.assert_array_equal(thinned.input, [np.mean([4, 9, 16, 25]), np.mean([36, 49, 64, 81])])
+    np.testing.assert_array_equal(thinned.output, [15.0, 27.0])
+    assert series.thinned(1) is series

@@ -103,7 +103,7 @@ def test_the_layouts_name_what_the_nodes_publish():
         stage, compensator, identification = nodes
         from sma_stage.nodes.model_watch import model_message
 
-        identification.watch.on_model(model_message(compensator.model.to_yaml_text(), compensator.model_source))
+        identification.on_model_in_force(model_message(compensator.model.to_yaml_text(), compensator.model_source))
         statuses = [stage.diagnostic_status(), compensator.diagnostic_status(),
                     identification.watch.diagnostic_status()]
         available = {f"/diagnostics/{status.hardware_id}/{status.name}/{key}" for status in statuses

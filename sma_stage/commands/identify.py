@@ -109,7 +109,7 @@ def run_fit(args: argparse.Namespace) -> dict:
         data = read_data(args.data, args)
         valid = read_data(args.validate, args) if args.validate else None
         found = identify_recording(data, valid, args.holdout, operators=args.operators, output_unit=args.unit,
-                                   progress=progress_line, source=str(args.data))
+                                   progress=progress_line, source=str(args.data), max_fit_samples=args.max_fit_samples)
         write_outputs(run.staging, found, "GPI fit")
         ident = data.split(1.0 - args.holdout)[0] if args.holdout else data
         valid_predicted = predict(found.fit, found.validation.input) if found.validation else None
@@ -127,7 +127,8 @@ def run_diagnose(args: argparse.Namespace) -> dict:
         valid = read_data(args.validate, args) if args.validate else None
         found = identify_recording(data, valid, args.holdout, operators=args.operators,
                                    diagnose_rounds=args.rounds, output_unit=args.unit, progress=progress_line,
-                                   source=str(args.data), workers=args.workers, families=args.families)
+                                   source=str(args.data), workers=args.workers, families=args.families,
+                                   max_fit_samples=args.max_fit_samples)
         if found.diagnosis is None:
             raise InputError(found.warnings[0] if found.warnings else "the diagnosis did not run")
         write_outputs(run.staging, found, "GPI fit and residual diagnosis")

@@ -68,7 +68,7 @@ from sma_stage.identify.cancel import Cancelled
 from sma_stage.identify.diagnosis import lower_priority
 from sma_stage.identify.families import check_families
 from sma_stage.identify.history import ModelHistory, judge_swap, started_from
-from sma_stage.identify.pipeline import deployed_held_out, identify_recording
+from sma_stage.identify.pipeline import FIT_SAMPLES, deployed_held_out, identify_recording
 from sma_stage.identify.watch import DriftTest, ModelWatch
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
@@ -105,6 +105,8 @@ IDENTIFICATION_PARAMS = [
           read_only=True),
     Param("min_samples", 100, "fewest aligned samples a refit accepts", 20, 10**8),
     Param("holdout_fraction", 0.25, "tail of the recording held out for validation", 0.05, 0.5),
+    Param("max_fit_samples", FIT_SAMPLES, "a longer recording is fitted on a copy thinned by whole blocks to at most "
+          "this many samples, scored on every sample (0: never thin)", 0, 10**8),
     Param("operators", 10, "play operators of the fitted model (0: chosen by the fit)", 0, MAX_OPERATORS),
     Param("diagnose_rounds", 1, "rounds of residual diagnosis after the fit (0: none); the effects it adds are "
           "in the model written and pushed", 0, 4),
@@ -744,7 +746,8 @@ class IdentificationNode(Node):
                                    diagnose_rounds=int(self.values["diagnose_rounds"]),
                                    source="identification node ~/refit",
                                    workers=int(self.values["diagnose_workers"]),
-                                   families=tuple(self.values["families"]))
+                                   families=tuple(self.values["families"]),
+                                   max_fit_samples=int(self.values["max_fit_samples"]))
         report = found.report
         self.check_held_out(report, series)
         report["model_file"] = self.write_model(found.model)
@@ -926,7 +929,8 @@ class IdentificationNode(Node):
                                    diagnose_rounds=int(self.values["diagnose_rounds"]),
                                    source=f"identification node, refit on drift ({what})",
                                    workers=int(self.values["diagnose_workers"]),
-                                   families=tuple(self.values["families"]))
+                                   families=tuple(self.values["families"]),
+                                   max_fit_samples=int(self.values["max_fit_samples"]))
         decision = judge_swap(found.model, in_force.model, series, found.scored_from)
         report = {**found.report, "swap": {"swapped": decision.swap, "reason": decision.reason,
                                            "candidate": decision.candidate.to_dict(),
