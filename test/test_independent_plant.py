@@ -89,22 +89,21 @@ def test_the_exact_inverse_recovers_the_measured_input_from_the_measured_output(
 
 def test_a_record_thinned_for_its_fit_is_scored_on_every_sample_and_a_costly_thinning_is_said():
     """A 2 s lag sampled at 10 Hz, thinned fourfold (the input averaged over 0.4 s blocks): the effect is named
-    again, the report scores the model on every validation sample, and since that is far worse than on the
-    thinned samples (and than the fit of every sample), a warning says to fit every sample. On the stage
+    again and the report scores the model on every validation sample; that is far worse than on the thinned
+    samples (2.4 % against 1.5 %; fitted whole, 0.2 %), so a warning says to fit every sample. On the stage
     simulator's 100 Hz records thinning costs nothing (bench/bench_long_refit.py)."""
     ident, valid = make_records("thermal_lag", seed=0)
     ident_series, valid_series = (make_series(r.t, r.u, r.y, name) for r, name in ((ident, "ident"), (valid, "valid")))
     limit = len(ident_series) // 4
-    full = identify_recording(ident_series, valid_series, diagnose_rounds=1, max_fit_samples=0)
     thinned = identify_recording(ident_series, valid_series, diagnose_rounds=1, max_fit_samples=limit)
-    assert "thinned" not in full.report and full.warnings == []
     entry = thinned.report["thinned"]
     assert entry["samples"] == len(ident_series) and entry["fitted_samples"] <= limit and entry["block"] == 4
-    assert thinned.model.effect_names == full.model.effect_names == ["thermal_lag"]
+    assert thinned.model.effect_names == ["thermal_lag"]
     full_rate = entry["validation_full_rate"]
     assert full_rate["samples"] == len(valid_series)
-    assert full_rate["rms_pct"] > 2 * full.report["diagnosis"]["after"]["validation"]["rms_pct"]
+    assert full_rate["rms_pct"] > 1.25 * thinned.report["diagnosis"]["after"]["validation"]["rms_pct"]
     assert any("max_fit_samples 0" in warning for warning in thinned.warnings), thinned.warnings
+    assert "thinned" not in identify_recording(ident_series, valid_series, max_fit_samples=0).report
 
 
 def test_thinning_averages_the_input_over_each_block_and_keeps_the_last_sample():
