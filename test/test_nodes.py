@@ -896,6 +896,31 @@ def test_identification_refit_deploys_the_chosen_family_and_the_compensator_runs
     assert "two-wire" in compensator.describe_model() and compensator.model.state is not None
 
 
+def test_on_drift_excite_runs_a_short_excitation_then_a_guarded_refit_and_rolls_back(ros, tmp_path):
+    """on_drift excite: the drift starts drift_excite_duration of the identification signal (the compensator
+    paused), then the refit of it, swapped in only when it predicts the excitation's held-out tail better than
+    the model in force; the swap is in ~/report's history, and ~/rollback puts the model before back."""
+    stage, identification = fast_stage_and_identification(ros, on_drift="excite", drift_excite_duration=500.0,
+                                                          excite_duration=5.0)
+    compensator = compensator_node(ros, rate_hz=2.0)
+    wait_until(lambda: identification.history.current is not None, 5.0, "the compensator's model in force")
+    shipped = compensator.model
+    identification.on_drift(None)
+    assert identification.exciting and identification.excite_duration_s == 500.0
+    wait_until(lambda: identification.last_report is not None and "swap" in identification.last_report, 60.0,
+               "the refit after the excitation on drift")
+    swap = identification.last_report["swap"]
+    assert swap["swapped"] == (swap["candidate"]["rms_pct"] < swap["in_force"]["rms_pct"]), swap
+    assert swap["swapped"], f"the shipped model does not describe the simulator better than a fit of it: {swap}"
+    wait_until(lambda: compensator.model.without_state() != shipped.without_state(), 5.0, "the swap")
+    reasons = [entry.reason for entry in identification.history.entries]
+    assert reasons[-1].startswith("refit on drift: swapped in"), reasons
+    probe = ros.probe()
+    answer = ros.call(probe, Trigger, "identification/rollback", timeout=10.0)
+    assert answer.success and "rolled back" in answer.message, answer.message
+    wait_until(lambda: compensator.model.without_state() == shipped.without_state(), 5.0, "the model before")
+
+
 def published_report(ros: Ros) -> dict:
     """The identification node's latest report on ~/report (transient local: a new subscriber gets it)."""
     reports = Listener(ros.probe(f"report_reader_{len(ros.nodes)}"), String, "identification/report", REPORT_QOS)
