@@ -1,5 +1,6 @@
 """Run the user story through the real `ros2` CLI against `ros2 launch sma_stage stage.launch.py`: launch a
-namespaced simulated stage on sim time, excite, refit, send a setpoint, read the position, stop with Ctrl-C.
+namespaced simulated stage on sim time, excite, refit, send a setpoint, read the position, read the residual,
+set on_drift, roll back to the model before, read the history on ~/report, stop with Ctrl-C.
 Prints one line per step and exits 1 when one fails. Not a test of the suite: it needs `ros2` with
 `ros2 launch` (tools/ros2launch_venv.sh) and the package built with colcon on AMENT_PREFIX_PATH.
 
@@ -103,6 +104,14 @@ def main() -> int:
         found = re.search(r"position:\s*\n-\s*([-0-9.e]+)", echo)
         position = float(found.group(1)) if found else float("nan")
         step("setpoint 200 um held", abs(position - 2e-4) < 2e-5, f"position {position * 1e6:.1f} um; {published}")
+        residual = ros2("topic", "echo", "--once", f"{ns}/identification/residual", "sensor_msgs/msg/JointState")
+        step("the model watch's residual", "position:" in residual, residual[:120])
+        changed = ros2("param", "set", f"{ns}/identification", "on_drift", "refit")
+        step("on_drift refit", "successful" in changed, changed)
+        ok, message = call_trigger(f"{ns}/identification/rollback")
+        step("rollback to the model before the refit", ok, message)
+        report = ros2("topic", "echo", "--once", "--full-length", f"{ns}/identification/report", "std_msgs/msg/String")
+        step("the history on ~/report", "rollback" in report and "~/refit" in report, report[-200:])
     finally:
         started = time.monotonic()
         launch.send_signal(signal.SIGINT)

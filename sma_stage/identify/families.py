@@ -1,5 +1,5 @@
-"""Model families compared on the same identification record: the GPI (with the effects its diagnosis added)
-and the two-wire model. The choice: the lowest held-out RMS error, and among the families within PARSIMONY of
+"""Model families compared on the same identification record: the GPI (with the effects its diagnosis added),
+the same GPI with free density weights, and the two-wire model. The choice: the lowest held-out RMS error, and among the families within PARSIMONY of
 it, the lowest BIC on the identification record (the simpler explanation when the held-out data cannot tell).
 """
 
@@ -11,11 +11,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from sma_stage.errors import InputError
+from sma_stage.identify.fit import information_criterion
+from sma_stage.identify.free_weights import fit_free_weights
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.two_wire import TwoWireFit, fit_two_wire
 from sma_stage.io.series import Series
+from sma_stage.model.identified import IdentifiedModel, Start
 
-FAMILIES = ("gpi", "two_wire")
+FAMILIES = ("gpi", "gpi_free", "two_wire")
 PARSIMONY = 0.05  # families within 5 % (relative) of the best held-out RMS are told apart by BIC
 
 
@@ -66,6 +69,29 @@ def fit_two_wire_row(ident: Series, record: Series | None, scored_from: int, out
     params = found.model.parameters
     description = f"two-wire, {params.wire_operators} operators per wire, {params.output_operators} output operators"
     return FamilyRow("two_wire", description, found.parameter_count, found.errors, validation, found.bic), found
+
+
+def fit_free_weights_row(gpi: IdentifiedModel, gpi_parameters: int, ident: Series, ident_start: Start,
+                         record: Series | None, scored_from: int, record_start: Start
+                         ) -> tuple[FamilyRow, IdentifiedModel | None]:
+    """The GPI family's model (gpi_parameters free parameters) with free density weights fitted on the
+    identification record, scored on the validation record as the GPI is (each record from the start found for
+    it)."""
+    try:
+        model = fit_free_weights(gpi, ident.t, ident.input, ident.output, ident_start)
+    except InputError as error:
+        return FamilyRow("gpi_free", "GPI, free weights", not_fitted=str(error)), None
+    fitted = model.predict_from(ident.t, ident.input, ident_start)
+    identification = error_metrics(ident.output, fitted)
+    count = gpi_parameters - 2 + model.operators  # a10, a11 out, one weight per operator in
+    bic = information_criterion(float(np.sum((ident.output - fitted) ** 2)), len(ident), count)
+    validation = None
+    if record is not None and np.ptp(record.output[scored_from:]) > 0.0:
+        predicted = model.predict_from(record.t, record.input, record_start)
+        validation = error_metrics(record.output[scored_from:], predicted[scored_from:])
+    effects = " + ".join(model.effect_names) or "no effect"
+    description = f"GPI, {model.operators} operators, free weights, {effects}"
+    return FamilyRow("gpi_free", description, count, identification, validation, bic), model
 
 
 def choose(rows: Sequence[FamilyRow]) -> int | None:

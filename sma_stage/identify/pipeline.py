@@ -13,7 +13,13 @@ import numpy as np
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import Diagnosis, diagnose, one_blas_thread
-from sma_stage.identify.families import FamilyRow, check_families, choose, fit_two_wire_row
+from sma_stage.identify.families import (
+    FamilyRow,
+    check_families,
+    choose,
+    fit_free_weights_row,
+    fit_two_wire_row,
+)
 from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, information_criterion, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
@@ -96,11 +102,14 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     gpi_model = replace(model, state=end_state, metadata=metadata)
     model = gpi_model
     families = check_families(families)
+    chosen = None
     if errors is not None and families != ("gpi",):
         chosen = _compare_families(families, fit, found, errors, ident, valid, scored_from, output_unit, report,
                                    progress)
         if chosen is not None:
-            model = replace(chosen, state=chosen.run(continued.t, continued.input)[1], metadata=metadata)
+            carried = chosen.start_state(continued.t, continued.input, start) if isinstance(chosen, IdentifiedModel) \
+                else None
+            model = replace(chosen, state=chosen.run(continued.t, continued.input, carried)[1], metadata=metadata)
     if found is not None:
         report["diagnosis"] = found.to_dict()
     held_out = deployed_held_out(report)
@@ -118,7 +127,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     report["compensation"] = compensation_notes(model)
     report["warnings"] = list(warnings)
     return Identification(model, fit, found, report, warnings, valid, scored_from,
-                          gpi_model if isinstance(model, TwoWireModel) else None)
+                          gpi_model if chosen is not None else None)
 
 
 def _thinning_block(samples: int, limit: int) -> int:
@@ -174,24 +183,34 @@ def deployed_held_out(report: dict) -> dict | None:
 
 def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics,
                       ident: Series, valid: Series, scored_from: int, output_unit: str, report: dict,
-                      progress: Progress) -> TwoWireModel | None:
-    """Fit the other families and fill report["families"]; the two-wire model when it is chosen, else None."""
-    rows = []
+                      progress: Progress) -> IdentifiedModel | TwoWireModel | None:
+    """Fit the other families and fill report["families"]; the chosen family's model (without state) when it is
+    not the GPI, else None."""
+    gpi = _gpi_row(fit, found, errors, ident)
+    rows, models = [], []
     if "gpi" in families:
-        rows.append(_gpi_row(fit, found, errors, ident))
-    two_wire = None
+        rows.append(gpi)
+        models.append(None)
+    if "gpi_free" in families:
+        starts = found.starts if found is not None else {}
+        ident_start = starts["identification"].start if "identification" in starts else Start("rest")
+        valid_start = starts["validation"].start if "validation" in starts else Start("rest")
+        gpi_model = found.chain.model if found is not None else IdentifiedModel(fit.parameters, fit.operators)
+        row, free = fit_free_weights_row(gpi_model, gpi.parameters, ident, ident_start, valid, scored_from,
+                                         valid_start)
+        rows.append(row)
+        models.append(free)
     if "two_wire" in families:
         if progress is not None:
             progress("fitting the two-wire model")
         row, two_wire = fit_two_wire_row(ident, valid, scored_from, output_unit)
         rows.append(row)
+        models.append(two_wire.model.without_state() if two_wire is not None else None)
     chosen = choose(rows)
     if chosen is not None:
         rows[chosen] = replace(rows[chosen], chosen=True)
     report["families"] = [row.to_dict() for row in rows]
-    if chosen is not None and rows[chosen].family == "two_wire":
-        return two_wire.model.without_state()
-    return None
+    return models[chosen] if chosen is not None else None
 
 
 def _gpi_row(fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics, ident: Series) -> FamilyRow:
@@ -202,8 +221,10 @@ def _gpi_row(fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics, iden
     chain = found.chain
     count = chain.last.parameter_count + sum(len(stage.parameters) for stage in chain.stages[:-1])
     added = " + ".join(chain.effects) or "no effect"
+    predicted = chain.predict(ident.t, ident.input)
+    bic = information_criterion(float(np.sum((ident.output - predicted) ** 2)), len(ident), count)
     return FamilyRow("gpi", f"GPI, {chain.last.operators} operators, {added}", count,
-                     error_metrics(ident.output, chain.predict(ident.t, ident.input)), found.after, chain.bic)
+                     error_metrics(ident.output, predicted), found.after, bic)
 
 
 def _split(record: Series, validation: Series | None, holdout_fraction: float | None

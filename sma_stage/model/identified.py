@@ -97,6 +97,12 @@ class IdentifiedModel:
         if len(set(kinds)) != len(kinds):
             raise InputError(f"an effect appears twice: {', '.join(kinds)}")
         object.__setattr__(self, "effects", effects)
+        if self.parameters.weights is not None:
+            if len(self.parameters.weights) != self.operators:
+                raise InputError(f"the model has {len(self.parameters.weights)} free weights and {self.operators} "
+                                 "operators")
+            if "rate" in kinds:
+                raise InputError("free GPI weights do not go with the rate effect (its thresholds take the density)")
         if self.state is not None:
             if len(self.state.operators) != self.operators or len(self.state.effects) != len(effects):
                 raise InputError(f"state holds {len(self.state.operators)} operator states and "

@@ -19,7 +19,8 @@ MAX_OPERATORS = 1000
 @dataclass(frozen=True)
 class GPIParameters:
     """Envelopes gl = a1 tanh(a2 v + a3) + a4, gr = a5 tanh(a6 v + a7) + a8 [output unit];
-    thresholds r_i = a9 i; density p(r) = a10 exp(-a11 r). Input v in A."""
+    thresholds r_i = a9 i; density p(r) = a10 exp(-a11 r), or free non-negative `weights` p_i, one per
+    operator (the first above 0), which then stand for the density (a10 and a11 are kept, unused). Input v in A."""
 
     a1: float
     a2: float
@@ -33,6 +34,7 @@ class GPIParameters:
     a10: float
     a11: float
     output_unit: str = "m"
+    weights: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         for name in PARAMETER_NAMES:
@@ -46,6 +48,8 @@ class GPIParameters:
             raise InputError(f"GPI parameter a9 (threshold step) must be > 0, got {self.a9!r}")
         if not isinstance(self.output_unit, str) or not self.output_unit.strip():
             raise InputError(f"output_unit must be a non-empty string, got {self.output_unit!r}")
+        if self.weights is not None:
+            object.__setattr__(self, "weights", _checked_weights(self.weights))
 
     def as_array(self) -> np.ndarray:
         """The eleven parameters a1..a11 as a float array."""
@@ -59,22 +63,30 @@ class GPIParameters:
             raise InputError(f"expected {len(PARAMETER_NAMES)} GPI parameters, got {values.size}")
         return cls(*values.tolist(), output_unit=output_unit)
 
-    def to_dict(self) -> dict[str, float]:
-        """The eleven parameters as a name-to-value mapping (output_unit left out)."""
-        return {name: getattr(self, name) for name in PARAMETER_NAMES}
+    def to_dict(self) -> dict[str, float | list[float]]:
+        """The eleven parameters as a name-to-value mapping, and `weights` when free (output_unit left out)."""
+        values: dict[str, float | list[float]] = {name: getattr(self, name) for name in PARAMETER_NAMES}
+        if self.weights is not None:
+            values["weights"] = list(self.weights)
+        return values
 
     @classmethod
     def from_dict(cls, values: dict, output_unit: str = "m") -> GPIParameters:
-        """Parameters from a mapping holding a1..a11; unknown or missing names are refused."""
+        """Parameters from a mapping holding a1..a11 (and `weights`, optionally); unknown or missing names are
+        refused."""
         if not isinstance(values, dict):
             raise InputError(f"GPI parameters must be a mapping of a1..a11, got {type(values).__name__}")
         missing = [name for name in PARAMETER_NAMES if name not in values]
-        unknown = [key for key in values if key not in PARAMETER_NAMES]
+        unknown = [key for key in values if key not in (*PARAMETER_NAMES, "weights")]
         if missing:
             raise InputError(f"GPI parameters missing: {', '.join(missing)}")
         if unknown:
             raise InputError(f"unknown GPI parameters: {', '.join(map(str, unknown))}")
-        return cls(**{name: values[name] for name in PARAMETER_NAMES}, output_unit=output_unit)
+        weights = values.get("weights")
+        if weights is not None and not isinstance(weights, (list, tuple)):
+            raise InputError(f"GPI parameter weights must be a list of numbers, got {type(weights).__name__}")
+        return cls(**{name: values[name] for name in PARAMETER_NAMES}, output_unit=output_unit,
+                   weights=tuple(weights) if weights is not None else None)
 
     def replace(self, **changes: float | str) -> GPIParameters:
         """A copy with some fields changed (validated again)."""
@@ -95,7 +107,11 @@ class GPIParameters:
         return self.a9 * np.arange(check_operators(operators), dtype=float)
 
     def densities(self, operators: int) -> np.ndarray:
-        """Weights p(r_i) = a10 exp(-a11 r_i) for each threshold [dimensionless]."""
+        """Weights p(r_i) = a10 exp(-a11 r_i) for each threshold, or the free weights [dimensionless]."""
+        if self.weights is not None:
+            if len(self.weights) != check_operators(operators):
+                raise InputError(f"the model has {len(self.weights)} free weights and {operators} operators")
+            return np.array(self.weights)
         return self.a10 * np.exp(-self.a11 * self.thresholds(operators))
 
     def invertibility_problems(self, operators: int = DEFAULT_OPERATORS) -> list[str]:
@@ -105,7 +121,10 @@ class GPIParameters:
             problems.append("gl is not increasing (a1*a2 <= 0)")
         if self.a5 * self.a6 <= 0.0:
             problems.append("gr is not increasing (a5*a6 <= 0)")
-        if self.a10 <= 0.0:
+        if self.weights is not None:
+            if len(self.weights) != operators:
+                problems.append(f"{len(self.weights)} free weights for {operators} operators")
+        elif self.a10 <= 0.0:
             problems.append(f"density p(r) = a10 exp(-a11 r) is not positive (a10 = {self.a10:g})")
         elif not np.all(np.isfinite(self.densities(operators))):
             problems.append("density overflows at the largest threshold (a11 too negative)")
@@ -124,6 +143,21 @@ class GPIParameters:
         from sma_stage.model.identified import load_model_file
 
         return load_model_file(path).parameters
+
+
+def _checked_weights(weights: object) -> tuple[float, ...]:
+    """Free density weights as floats: finite, not negative, the first above 0 (the inverse divides by it)."""
+    values = []
+    for index, value in enumerate(weights):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+            raise InputError(f"GPI weight {index} must be a number, got {shown_number(value)}")
+        number = float_or_inf(value)
+        if not math.isfinite(number) or number < 0.0:
+            raise InputError(f"GPI weight {index} must be finite and at least 0, got {shown_number(value)}")
+        values.append(number)
+    if not values or values[0] <= 0.0:
+        raise InputError("free GPI weights need at least one value and a first weight above 0")
+    return tuple(values)
 
 
 def float_or_inf(value: float | int) -> float:

@@ -848,11 +848,12 @@ class IdentificationNode(Node):
         if previous is None:
             response.success, response.message = False, "no model before the one in force to roll back to"
             return response
+        source, since_s = previous.source, previous.since_s  # the entry is noted again once the model is in force
         t_s, current_a, _ = self.watch.recent_arrays() if self.watch is not None else ((), (), ())
-        pushed = self.push(started_from(previous.model, t_s, current_a), f"~/rollback to the model from {previous.source}")
+        pushed = self.push(started_from(previous.model, t_s, current_a), f"~/rollback to the model from {source}")
         response.success = pushed["pushed"]
-        response.message = (f"rolled back to the model from {previous.source} (in force since "
-                            f"{previous.since_s:.1f} s)" if pushed["pushed"] else f"rollback failed: {pushed['message']}")
+        response.message = (f"rolled back to the model from {source} (in force from {since_s:.1f} s until the one "
+                            "rolled back)" if pushed["pushed"] else f"rollback failed: {pushed['message']}")
         log = self.get_logger().info if pushed["pushed"] else self.get_logger().warning
         log(f"~/rollback: {response.message}")
         return response
