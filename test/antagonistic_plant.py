@@ -252,6 +252,7 @@ def main() -> None:
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument("--families", default="gpi,gpi_free,two_wire,bouc_wen", help="gpi_tool diagnose --families")
     parser.add_argument("--alternatives", action="store_true",
                         help="the two-wire model's alternatives instead: shared or per-wire shapes, identified on "
                              "the paper's or the designed excitation")
@@ -280,16 +281,19 @@ def main() -> None:
             with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
                 gpi_tool(["diagnose", str(paths["identification"]), "--validate", str(paths["validation"]),
                           "--rounds", str(args.rounds), "--workers", "2", "--out", str(Path(folder) / "out"),
-                          "--families", "gpi,two_wire", "--json"])
+                          "--families", args.families, "--json"])
             report = json.loads(out.getvalue())
             seconds = time.perf_counter() - started
         span = 1e3 * float(np.ptp(made["identification"][2]))
         for row in report["families"]:
             valid = row["validation"]
+            if valid is None:
+                print(f"| {name} | {span:.3f} | {row['model']}: not fitted ({row['not_fitted']}) | | | | |", flush=True)
+                continue
             print(f"| {name} | {span:.3f} | {row['model']} | {row['identification']['rms_pct']:.2f} | "
                   f"{valid['rms_pct']:.2f} | {valid['max_pct']:.1f} | {'chosen' if row['chosen'] else ''} |",
                   flush=True)
-        print(f"| {name} | | (diagnose, both families) | | | | {seconds:.0f} s |", flush=True)
+        print(f"| {name} | | (diagnose, families {args.families}) | | | | {seconds:.0f} s |", flush=True)
 
 
 def alternatives(variants: list[str], seed: int) -> None:

@@ -55,8 +55,8 @@ Each effect of the IdentifiedModel is stepped with the code identification fitte
 The model's state at the end of the identification record, when it carries one, is where the inverse,
 the lag and the drift start.
 
-A TwoWireModel is run backwards by its own exact inverse (sma_stage.control.drives.TwoWireDrive): its wires'
-temperatures are advanced with the command sent, and the current is the one that, held over the horizon a
+A TwoWireModel or a BoucWenModel is run backwards by its own exact inverse (sma_stage.control.drives.StreamDrive):
+its heating states are advanced with the command sent, and the current is the one that, held over the horizon a
 lead of gain g needs (-tau ln(1 - 1/g), tau the slower wire's), brings the model's output to the target;
 the same lead limits, rate limit, play and PI loop apply around it.
 """
@@ -69,6 +69,7 @@ import math
 from sma_stage.control.drives import AnyModel, Drive, drive_for, model_tau_s
 from sma_stage.errors import InputError, finite_number
 from sma_stage.model import IdentifiedModel
+from sma_stage.model.bouc_wen import BoucWenModel
 from sma_stage.model.two_wire import TwoWireModel
 
 COMPENSATION = {
@@ -84,9 +85,9 @@ COMPENSATION = {
 
 def compensation_notes(model: AnyModel) -> dict[str, str]:
     """How the compensator treats each of the model's effects (effect kind -> one line)."""
-    if isinstance(model, TwoWireModel):
-        return {"two_wire": "inverted exactly: the current that, held over the lead limit's horizon, brings the "
-                            "model's output to the target through both wires' temperatures"}
+    if isinstance(model, (TwoWireModel, BoucWenModel)):
+        return {model.kind: "inverted exactly: the current that, held over the lead limit's horizon, brings the "
+                            "model's output to the target through its heating lag"}
     return {kind: COMPENSATION[kind] for kind in model.effect_names}
 
 
@@ -220,8 +221,8 @@ class Compensator:
     def set_model(self, model: AnyModel, max_current_a: float | None = None, method: str | None = None) -> None:
         """Use another model (checked whole: InputError and nothing changed when it cannot be inverted);
         the integral and every state start again, from the model's carried state when it has one."""
-        if not isinstance(model, (IdentifiedModel, TwoWireModel)):
-            raise InputError(f"model must be an IdentifiedModel or a TwoWireModel, got {type(model).__name__}")
+        if not isinstance(model, (IdentifiedModel, TwoWireModel, BoucWenModel)):
+            raise InputError(f"model must be a GPI, a two-wire or a Bouc-Wen model, got {type(model).__name__}")
         if model.output_unit != "m":
             raise InputError(f"the model's output unit is '{model.output_unit}'; the setpoint is in m")
         limit = _non_negative("max_current_a", self._limit if max_current_a is None else max_current_a)

@@ -4,10 +4,11 @@ gives the current [A], steps the model with the current the stage was given, and
 - GPIDrive (an IdentifiedModel): the GPI's inverse gives what its input should be, the thermal effect's lead
   (sma_stage.control.thermal) the current that brings its state there, the drift's offset is taken off the
   target (see sma_stage.control.compensator).
-- TwoWireDrive (a TwoWireModel): the model's own exact inverse through its wires' temperatures: the current
-  that, held over a horizon, brings the output to the target (sma_stage.model.two_wire). The horizon is the
-  lead limit's: a first-order lag driven by s + g (v* - s) reaches v* after -tau ln(1 - 1/g), so a lead of
-  gain at most g is the inverse over at least that horizon (and over one hold when that needs less).
+- StreamDrive (a TwoWireModel, a BoucWenModel: a model whose input is a held current, with a `stream`): the
+  model's own exact inverse through its heating lag: the current that, held over a horizon, brings the output
+  to the target (sma_stage.model.two_wire, sma_stage.model.bouc_wen). The horizon is the lead limit's: a
+  first-order lag driven by s + g (v* - s) reaches v* after -tau ln(1 - 1/g), so a lead of gain at most g is
+  the inverse over at least that horizon (and over one hold when that needs less).
 """
 
 from __future__ import annotations
@@ -20,13 +21,15 @@ import numpy as np
 from sma_stage.control.thermal import ThermalState
 from sma_stage.errors import InputError
 from sma_stage.model import GPIForwardStream, GPIInverseStream, IdentifiedModel
+from sma_stage.model.bouc_wen import BoucWenModel
 from sma_stage.model.effects import Effect, EffectState, joule_heating
 from sma_stage.model.identified import ModelState
 from sma_stage.model.inverse import TARGET_MARGIN_SPANS
 from sma_stage.model.two_wire import TwoWireModel
 
 SETTLED_TAUS = 30.0  # a hold this many time constants long is a steady state (e^-30: 1e-13)
-AnyModel = IdentifiedModel | TwoWireModel
+AnyModel = IdentifiedModel | TwoWireModel | BoucWenModel
+StreamModel = TwoWireModel | BoucWenModel  # the families run one held current at a time (their `stream`)
 
 
 class Drive(Protocol):
@@ -66,16 +69,15 @@ def drive_for(model: object, max_current_a: float, method: str) -> Drive:
     """The drive of a model of any family (InputError when it cannot be inverted within +-max_current_a [A])."""
     if isinstance(model, IdentifiedModel):
         return GPIDrive(model, max_current_a, method)
-    if isinstance(model, TwoWireModel):
-        return TwoWireDrive(model, max_current_a, method)
-    raise InputError(f"model must be a GPI or a two-wire model, got {type(model).__name__}")
+    if isinstance(model, (TwoWireModel, BoucWenModel)):
+        return StreamDrive(model, max_current_a, method)
+    raise InputError(f"model must be a GPI, a two-wire or a Bouc-Wen model, got {type(model).__name__}")
 
 
 def model_tau_s(model: AnyModel) -> float:
     """The slowest thermal time constant of a model [s] (0: none): what the PI loop's tuning takes as the lag."""
-    if isinstance(model, TwoWireModel):
-        values = model.parameters.values
-        return max(values["tau_a_s"], values["tau_b_s"])
+    if isinstance(model, (TwoWireModel, BoucWenModel)):
+        return model.tau_s
     return ThermalState(thermal_effect(model)).tau_s
 
 
@@ -164,17 +166,18 @@ class GPIDrive:
         return f"{self.method} inverse of a {self.model.operators}-operator GPI with {effects}"
 
 
-class TwoWireDrive:
-    """The two-wire model's exact inverse through its wires' temperatures, over the lead limit's horizon."""
+class StreamDrive:
+    """A held-current model's exact inverse through its heating lag, over the lead limit's horizon."""
 
     method = "exact"
 
-    def __init__(self, model: TwoWireModel, max_current_a: float, method: str) -> None:
+    def __init__(self, model: StreamModel, max_current_a: float, method: str) -> None:
         if method != "exact":
-            raise InputError(f"a two-wire model has an exact inverse only; inverse_method is {method!r}")
+            raise InputError(f"a {model.kind.replace('_', '-')} model has an exact inverse only; inverse_method is "
+                             f"{method!r}")
         self.model = model
         self.stream = model.stream(model.state, max_current_a)
-        self.reach = _two_wire_reach(model, max_current_a, self.tau_s)
+        self.reach = _stream_reach(model, max_current_a, self.tau_s)
         low, high = self.reach
         margin = TARGET_MARGIN_SPANS * (high - low)
         self.target_bounds = (low - margin, high + margin)
@@ -207,6 +210,8 @@ class TwoWireDrive:
         self.advance(current_a, dt_s)
 
     def describe(self) -> str:
+        if isinstance(self.model, BoucWenModel):
+            return f"exact inverse of a Bouc-Wen model (heating lag {self.tau_s:.3g} s)"
         params = self.model.parameters
         return (f"exact inverse of a two-wire model ({params.wire_operators} operators per wire, "
                 f"{params.output_operators} at the output)")
@@ -220,7 +225,7 @@ def lead_horizon_s(tau_s: float, lead_limit: float) -> float:
     return min(SETTLED_TAUS * tau_s, -tau_s * math.log1p(-1.0 / lead_limit))
 
 
-def _two_wire_reach(model: TwoWireModel, max_current_a: float, tau_s: float) -> tuple[float, float]:
+def _stream_reach(model: StreamModel, max_current_a: float, tau_s: float) -> tuple[float, float]:
     """The outputs [m] the current limit settles to from rest, each way (low, high)."""
     ends = []
     for current in (-max_current_a, max_current_a):
@@ -229,5 +234,5 @@ def _two_wire_reach(model: TwoWireModel, max_current_a: float, tau_s: float) -> 
     low, high = min(ends), max(ends)
     span = high - low
     if not span > 0.0:
-        raise InputError("the two-wire model's output does not move with the current: it cannot be inverted")
+        raise InputError("the model's output does not move with the current: it cannot be inverted")
     return low, high

@@ -1,5 +1,6 @@
 """Model families compared on the same identification record: the GPI (with the effects its diagnosis added),
-the same GPI with free density weights, and the two-wire model. The choice: the lowest held-out RMS error, and among the families within PARSIMONY of
+the same GPI with free density weights, the two-wire model, and the Bouc-Wen model as a baseline from outside
+the Prandtl-Ishlinskii family. The choice: the lowest held-out RMS error, and among the families within PARSIMONY of
 it, the lowest BIC on the identification record (the simpler explanation when the held-out data cannot tell).
 """
 
@@ -11,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sma_stage.errors import InputError
+from sma_stage.identify.bouc_wen import BoucWenFit, fit_bouc_wen
 from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.free_weights import fit_free_weights
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
@@ -18,7 +20,7 @@ from sma_stage.identify.two_wire import TwoWireFit, fit_two_wire
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
 
-FAMILIES = ("gpi", "gpi_free", "two_wire")
+FAMILIES = ("gpi", "gpi_free", "two_wire", "bouc_wen")
 PARSIMONY = 0.05  # families within 5 % (relative) of the best held-out RMS are told apart by BIC
 
 
@@ -54,21 +56,27 @@ def check_families(names: Sequence[str]) -> tuple[str, ...]:
     return tuple(name for name in FAMILIES if name in names)
 
 
-def fit_two_wire_row(ident: Series, record: Series | None, scored_from: int, output_unit: str
-                     ) -> tuple[FamilyRow, TwoWireFit | None]:
-    """The two-wire model fitted on the identification record and scored on the validation record (`record`,
-    from its sample scored_from: a separate record run from rest, or the whole record whose tail is held out)."""
+def fit_held_current_row(family: str, ident: Series, record: Series | None, scored_from: int, output_unit: str
+                         ) -> tuple[FamilyRow, TwoWireFit | BoucWenFit | None]:
+    """A held-current family's model (two_wire or bouc_wen) fitted on the identification record and scored on
+    the validation record (`record`, from its sample scored_from: a separate record run from rest, or the whole
+    record whose tail is held out)."""
+    fitter = {"two_wire": fit_two_wire, "bouc_wen": fit_bouc_wen}[family]
     try:
-        found = fit_two_wire(ident.t, ident.input, ident.output, output_unit=output_unit)
+        found = fitter(ident.t, ident.input, ident.output, output_unit=output_unit)
     except InputError as error:
-        return FamilyRow("two_wire", "two-wire", not_fitted=str(error)), None
+        return FamilyRow(family, family.replace("_", "-"), not_fitted=str(error)), None
     validation = None
     if record is not None and np.ptp(record.output[scored_from:]) > 0.0:
         predicted = found.model.without_state().predict(record.t, record.input)
         validation = error_metrics(record.output[scored_from:], predicted[scored_from:])
-    params = found.model.parameters
-    description = f"two-wire, {params.wire_operators} operators per wire, {params.output_operators} output operators"
-    return FamilyRow("two_wire", description, found.parameter_count, found.errors, validation, found.bic), found
+    if family == "two_wire":
+        params = found.model.parameters
+        description = (f"two-wire, {params.wire_operators} operators per wire, {params.output_operators} output "
+                       "operators")
+    else:
+        description = f"Bouc-Wen through a heating lag of {found.model.tau_s:.3g} s"
+    return FamilyRow(family, description, found.parameter_count, found.errors, validation, found.bic), found
 
 
 def fit_free_weights_row(gpi: IdentifiedModel, gpi_parameters: int, ident: Series, ident_start: Start,

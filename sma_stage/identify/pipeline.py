@@ -11,6 +11,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sma_stage.control.compensator import compensation_notes
+from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import Diagnosis, diagnose, one_blas_thread
 from sma_stage.identify.families import (
@@ -18,14 +19,13 @@ from sma_stage.identify.families import (
     check_families,
     choose,
     fit_free_weights_row,
-    fit_two_wire_row,
+    fit_held_current_row,
 )
 from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, information_criterion, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
-from sma_stage.model.two_wire import TwoWireModel
 
 MIN_HELD_OUT = 10
 FIT_SAMPLES = 20_000  # a longer record is fitted on a copy thinned to about this many samples (max_fit_samples)
@@ -41,7 +41,7 @@ class Identification:
     the diagnosis (None when not asked for, or when it failed: see `warnings`), the JSON report and the
     validation record with the sample its errors count from."""
 
-    model: IdentifiedModel | TwoWireModel
+    model: AnyModel
     fit: FitResult
     diagnosis: Diagnosis | None
     report: dict
@@ -142,7 +142,7 @@ def _head(full: Series, block: int, thinned_samples: int) -> Series:
     return full.slice(None, len(full) % block + block * thinned_samples) if block > 1 else full.slice(None, thinned_samples)
 
 
-def _thinned_entry(model: IdentifiedModel | TwoWireModel, start: Start, full_record: Series,
+def _thinned_entry(model: AnyModel, start: Start, full_record: Series,
                    full_validation: Series | None, holdout_fraction: float | None, block: int, fitted: int,
                    scored_from: int) -> dict:
     """The report's "thinned": how the record was thinned and the deployed model's errors on the full-rate
@@ -183,7 +183,7 @@ def deployed_held_out(report: dict) -> dict | None:
 
 def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics,
                       ident: Series, valid: Series, scored_from: int, output_unit: str, report: dict,
-                      progress: Progress) -> IdentifiedModel | TwoWireModel | None:
+                      progress: Progress) -> AnyModel | None:
     """Fit the other families and fill report["families"]; the chosen family's model (without state) when it is
     not the GPI, else None."""
     gpi = _gpi_row(fit, found, errors, ident)
@@ -200,12 +200,13 @@ def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosi
                                          valid_start)
         rows.append(row)
         models.append(free)
-    if "two_wire" in families:
-        if progress is not None:
-            progress("fitting the two-wire model")
-        row, two_wire = fit_two_wire_row(ident, valid, scored_from, output_unit)
-        rows.append(row)
-        models.append(two_wire.model.without_state() if two_wire is not None else None)
+    for family in ("two_wire", "bouc_wen"):
+        if family in families:
+            if progress is not None:
+                progress(f"fitting the {family.replace('_', '-')} model")
+            row, held = fit_held_current_row(family, ident, valid, scored_from, output_unit)
+            rows.append(row)
+            models.append(held.model.without_state() if held is not None else None)
     chosen = choose(rows)
     if chosen is not None:
         rows[chosen] = replace(rows[chosen], chosen=True)

@@ -35,6 +35,7 @@ from sma_stage.model.parameters import (
 )
 
 if TYPE_CHECKING:
+    from sma_stage.model.bouc_wen import BoucWenModel
     from sma_stage.model.two_wire import TwoWireModel
 
 SCHEMA_VERSION = 1
@@ -263,19 +264,25 @@ def load_model_file(path: str | os.PathLike) -> IdentifiedModel:
         raise InputError(f"model file {Path(path)}: {error}") from None
 
 
-def any_model_from_yaml_text(text: str) -> IdentifiedModel | TwoWireModel:
-    """A model of any family from YAML text, by its `kind` (gpi, the default, or two_wire)."""
+def any_model_from_yaml_text(text: str) -> IdentifiedModel | TwoWireModel | BoucWenModel:
+    """A model of any family from YAML text, by its `kind` (gpi, the default, two_wire or bouc_wen)."""
+    from sma_stage.model.bouc_wen import KIND as BOUC_WEN
+    from sma_stage.model.bouc_wen import BoucWenModel
     from sma_stage.model.two_wire import KIND as TWO_WIRE
     from sma_stage.model.two_wire import TwoWireModel
 
     document = parse_yaml(text)
-    if isinstance(document, dict) and document.get("kind") == TWO_WIRE:
+    kind = document.get("kind") if isinstance(document, dict) else None
+    if kind == TWO_WIRE:
         return TwoWireModel.from_dict(document)
+    if kind == BOUC_WEN:
+        return BoucWenModel.from_dict(document)
     return IdentifiedModel.from_dict(document)
 
 
-def load_any_model_file(path: str | os.PathLike) -> IdentifiedModel | TwoWireModel:
-    """A model file of any family, by its `kind` (gpi, the default, or two_wire); problems as load_model_file."""
+def load_any_model_file(path: str | os.PathLike) -> IdentifiedModel | TwoWireModel | BoucWenModel:
+    """A model file of any family, by its `kind` (gpi, the default, two_wire or bouc_wen); problems as
+    load_model_file."""
     text = read_text_file(path, "model file")
     try:
         return any_model_from_yaml_text(text)

@@ -31,7 +31,7 @@ import yaml
 from sma_stage.errors import InputError
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import plain_values
-from sma_stage.model.parameters import float_or_inf, shown_number
+from sma_stage.model.held import HeldState, finite_value, held_state_from_dict
 
 KIND = "two_wire"
 SCHEMA_VERSION = 1
@@ -43,7 +43,6 @@ POSITIVE = ("tau_a_s", "tau_b_s", "heating_reference_a", "width_a", "width_b")
 NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold")
 MAX_OPERATORS = 50
 TOP_KEYS = ("schema_version", "kind", "output_unit", "parameters", "state", "metadata")
-STATE_KEYS = ("time_s", "current_a", "values")
 HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hysteresis in it, the output a\n"
           "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
 INVERSE_ITERATIONS = 100  # at most this many trial steps per inverse call (a few are the rule)
@@ -274,18 +273,7 @@ def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float
     return low if below <= abs(_held(state, p, n, m, high, step_s, target, trial)) else high
 
 
-@dataclass(frozen=True)
-class TwoWireState:
-    """Where a record left the model: its last sample's time [s], the current applied from then [A], and the
-    state vector (theta_a, theta_b [A], the plays, the last output [output unit])."""
-
-    time_s: float
-    current_a: float
-    values: tuple[float, ...]
-
-    def to_dict(self) -> dict[str, object]:
-        """Plain values for YAML."""
-        return {"time_s": self.time_s, "current_a": self.current_a, "values": [float(v) for v in self.values]}
+TwoWireState = HeldState  # what a record leaves the model in (sma_stage.model.held)
 
 
 @dataclass(frozen=True)
@@ -316,6 +304,11 @@ class TwoWireModel:
     def parameter_count(self) -> int:
         """Free parameters (for an information criterion)."""
         return self.parameters.parameter_count
+
+    @property
+    def tau_s(self) -> float:
+        """The slower wire's time constant [s]: the lag the compensator's lead undoes."""
+        return max(self.parameters.values["tau_a_s"], self.parameters.values["tau_b_s"])
 
     def without_state(self) -> TwoWireModel:
         """The same model with no carried state."""
@@ -447,10 +440,7 @@ class TwoWireStream:
 
 
 def _finite(value: object, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(float_or_inf(value)):
-        raise InputError(f"two-wire {name} must be a finite number, got {shown_number(value)}")
-    return float(value)
+    return finite_value(value, name, "two-wire")
 
 
 def _record(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -460,13 +450,4 @@ def _record(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _state(entry: object) -> TwoWireState:
-    if not isinstance(entry, dict):
-        raise InputError("two-wire state must be a mapping")
-    unknown = [str(key) for key in entry if key not in STATE_KEYS]
-    if unknown:
-        raise InputError(f"unknown key {unknown[0]!r} in the two-wire state (known: {', '.join(STATE_KEYS)})")
-    values = entry.get("values")
-    if not isinstance(values, list):
-        raise InputError("two-wire state.values must be a list")
-    return TwoWireState(_finite(entry.get("time_s"), "state.time_s"), _finite(entry.get("current_a"), "state.current_a"),
-                        tuple(_finite(value, "state.values") for value in values))
+    return held_state_from_dict(entry, "two-wire")

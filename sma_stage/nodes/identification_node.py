@@ -112,7 +112,7 @@ IDENTIFICATION_PARAMS = [
           "in the model written and pushed", 0, 4),
     Param("diagnose_workers", 1, "processes fitting a diagnosis round's candidates at once (1: in this node's "
           "process; more finish sooner and take CPU from a stage on the same computer)", 1, 64),
-    Param("families", ["gpi"], "model families ~/refit fits on the same recording: gpi, two_wire; the one with the "
+    Param("families", ["gpi"], "model families ~/refit fits on the same recording: gpi, gpi_free, two_wire, bouc_wen; the one with the "
           "lowest held-out error (then BIC) is written and pushed, and the compensator runs it"),
     Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
