@@ -28,6 +28,7 @@ OUTPUT_OPERATORS = 5
 STARTS = 6
 POLISHED = 2  # the best starts polished on the whole record
 SEARCH_SAMPLES = 2500  # the starts run on a copy thinned to about this many samples
+POLISH_SAMPLES = 10_000  # the best starts are polished on a copy thinned to at most this many
 SEARCH_EVALUATIONS = 1500
 POLISH_EVALUATIONS = 1500
 MIN_HEATED_SAMPLES = 10  # each wire must be heated in at least this many samples
@@ -65,7 +66,8 @@ def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: in
         if np.count_nonzero(heated) < MIN_HEATED_SAMPLES:
             raise InputError(f"the two-wire model needs both wires heated: wire {wire} is heated in "
                              f"{np.count_nonzero(heated)} samples (at least {MIN_HEATED_SAMPLES})")
-    problem = _Problem(t, u, y, wire_operators, output_operators, shapes)
+    fine = -(-t.size // POLISH_SAMPLES)
+    problem = _Problem(t[::fine], u[::fine], y[::fine], wire_operators, output_operators, shapes)
     thin = max(1, t.size // SEARCH_SAMPLES)
     search = _Problem(t[::thin], u[::thin], y[::thin], wire_operators, output_operators, shapes) if thin > 1 \
         else problem
@@ -76,7 +78,7 @@ def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: in
         searched.append(search.solve(search.random_start(rng), SEARCH_EVALUATIONS))
     evaluations = sum(found.nfev for found in searched)
     best = min(searched, key=lambda found: found.cost)
-    if search is not problem:  # the leaders polished on every sample: the thinned cost can rank them wrongly
+    if thin > fine:  # the leaders polished on more samples: the search's thinned cost can rank them wrongly
         polished = [problem.solve(found.x, POLISH_EVALUATIONS)
                     for found in sorted(searched, key=lambda found: found.cost)[:POLISHED]]
         evaluations += sum(found.nfev for found in polished)
