@@ -131,7 +131,7 @@ def test_pi_removes_a_constant_offset_of_the_plant():
     (lambda core: Compensator(MODEL, LIMIT_A, feedforward_step_lead_limit=0.5), "feedforward_step_lead_limit"),
     (lambda core: setattr(core, "feedforward_step_lead_limit", float("inf")), "feedforward_step_lead_limit"),
     (lambda core: setattr(core, "deadband_m", -1e-6), "deadband_m"),
-    (lambda core: Compensator("not a model"), "IdentifiedModel"),
+    (lambda core: Compensator("not a model"), "a GPI, a two-wire or a Bouc-Wen model"),
     (lambda core: Compensator(MODEL, LIMIT_A, ""), "inverse method"),  # fuzzing: was an AttributeError
     (lambda core: core.set_model(IdentifiedModel(MODEL.parameters.replace(output_unit="mm"), MODEL.operators)),
      "output unit"),

@@ -887,8 +887,8 @@ def test_identification_refit_deploys_the_chosen_family_and_the_compensator_runs
     deployed = load_any_model_file(model_file)
     assert isinstance(deployed, TwoWireModel) == (chosen == "two_wire")
     assert report["compensator"]["pushed"] and compensator.model == deployed
-    refused = identification.set_parameters([Parameter("families", value=["gpi", "bouc_wen"])])[0]
-    assert not refused.successful and "unknown model family 'bouc_wen'" in refused.reason
+    refused = identification.set_parameters([Parameter("families", value=["gpi", "preisach"])])[0]
+    assert not refused.successful and "unknown model family 'preisach'" in refused.reason
     assert identification.set_parameters([Parameter("families", value=["two_wire"])])[0].successful
     answer = refit_answer(ros, probe)
     assert answer.success and "family two_wire deployed" in answer.message, answer.message

@@ -188,8 +188,8 @@ def test_an_unknown_family_is_refused_in_one_line():
     from sma_stage.identify.families import check_families
 
     assert check_families(["two_wire", "gpi"]) == ("gpi", "two_wire")
-    with pytest.raises(InputError, match="unknown model family 'bouc_wen'"):
-        check_families(["gpi", "bouc_wen"])
+    with pytest.raises(InputError, match="unknown model family 'preisach'"):
+        check_families(["gpi", "preisach"])
     with pytest.raises(InputError, match="no model family given"):
         check_families([" "])
 

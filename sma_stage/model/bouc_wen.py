@@ -14,25 +14,19 @@ t[k+1]; the exact inverse is the current that, held over the next period, brings
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
-import yaml
 
 from sma_stage.errors import InputError
-from sma_stage.io.atomic import atomic_write_text
-from sma_stage.io.plain import plain_values
-from sma_stage.model.held import HeldState, finite_value, held_state_from_dict
+from sma_stage.model.held import HeldCurrentModel, HeldState, finite_value
 
 KIND = "bouc_wen"
-SCHEMA_VERSION = 1
 NAMES = ("tau_s", "k_x", "k_w", "offset", "beta", "gamma", "n")
 HEATING_REFERENCE_A = 5.0
 MAX_DX = 0.01  # the hysteretic part's integration step [A of heating]
-TOP_KEYS = ("schema_version", "kind", "output_unit", "parameters", "state", "metadata")
 HEADER = ("# sma_stage Bouc-Wen model: the wires' heating through a lag, a Bouc-Wen hysteresis of it (input in A,\n"
           "# output in output_unit; see sma_stage.model.bouc_wen)\n")
 INVERSE_ITERATIONS = 100
@@ -134,7 +128,7 @@ def _command_for(state: np.ndarray, p: np.ndarray, target: float, step_s: float,
 
 
 @dataclass(frozen=True)
-class BoucWenModel:
+class BoucWenModel(HeldCurrentModel):
     """A Bouc-Wen model: parameters, output unit, the state a record left (None: not known) and metadata."""
 
     parameters: BoucWenParameters
@@ -142,13 +136,15 @@ class BoucWenModel:
     state: HeldState | None = None
     metadata: Mapping[str, object] = field(default_factory=dict, compare=False)
 
-    kind = KIND
+    KIND = KIND
+    FAMILY = "Bouc-Wen"
+    HEADER = HEADER
+    state_size = 3  # x, w, y
 
     def __post_init__(self) -> None:
         if not isinstance(self.parameters, BoucWenParameters):
             raise InputError(f"parameters must be BoucWenParameters, got {type(self.parameters).__name__}")
-        if self.state is not None and len(self.state.values) != 3:
-            raise InputError(f"Bouc-Wen state holds 3 values (x, w, y), got {len(self.state.values)}")
+        self._check_common()
 
     @property
     def parameter_count(self) -> int:
@@ -159,70 +155,22 @@ class BoucWenModel:
         """The heating lag [s] the compensator's lead undoes."""
         return self.parameters.values["tau_s"]
 
-    def without_state(self) -> BoucWenModel:
-        return replace(self, state=None)
-
     def rest_state(self) -> np.ndarray:
         """x, w and y of a stage long at zero current."""
         return np.array([0.0, 0.0, self.parameters.values["offset"]])
 
-    def run(self, t: np.ndarray, u: np.ndarray, state: HeldState | None = None) -> tuple[np.ndarray, HeldState]:
-        """(output at each sample [output unit], the state at the last sample): from rest, or from `state`."""
-        from sma_stage.model.identified import _record
+    def _advance_record(self, t: np.ndarray, u: np.ndarray, values: np.ndarray, held: float, first_step_s: float,
+                        out: np.ndarray) -> None:
+        _run(t, u, self.parameters.as_array(), values, held, first_step_s, out)
 
-        t, u = _record(t, u)
-        if state is None:
-            values, held, first = self.rest_state(), 0.0, 0.0
-        else:
-            values, held = np.array(state.values, dtype=float), state.current_a
-            first = float(t[0] - state.time_s)
-            if first < 0.0:
-                raise InputError(f"the record starts at {t[0]:g} s, before the carried state ({state.time_s:g} s)")
-        out = np.empty(t.size)
-        _run(t, u, self.parameters.as_array(), values, held, first, out)
-        return out, HeldState(float(t[-1]), float(u[-1]), tuple(values.tolist()))
-
-    def predict(self, t: np.ndarray, u: np.ndarray, state: HeldState | None = None) -> np.ndarray:
-        return self.run(t, u, state)[0]
+    @staticmethod
+    def _parameters_from_dict(document: object) -> BoucWenParameters:
+        if not isinstance(document, dict):
+            raise InputError("Bouc-Wen parameters must be a mapping")
+        return BoucWenParameters(document)
 
     def stream(self, state: HeldState | None = None, max_current_a: float = 5.0) -> BoucWenStream:
         return BoucWenStream(self, state, max_current_a)
-
-    def to_dict(self) -> dict[str, object]:
-        document: dict[str, object] = {"schema_version": SCHEMA_VERSION, "kind": KIND, "output_unit": self.output_unit,
-                                       "parameters": self.parameters.to_dict()}
-        if self.state is not None:
-            document["state"] = self.state.to_dict()
-        if self.metadata:
-            document["metadata"] = dict(self.metadata)
-        return document
-
-    def to_yaml_text(self) -> str:
-        return HEADER + yaml.safe_dump(plain_values(self.to_dict()), sort_keys=False)
-
-    def save(self, path: str | os.PathLike) -> None:
-        atomic_write_text(path, self.to_yaml_text())
-
-    @classmethod
-    def from_dict(cls, document: object) -> BoucWenModel:
-        """The model from a parsed YAML document (kind bouc_wen); InputError naming the first bad key."""
-        if not isinstance(document, dict):
-            raise InputError("the model: expected a mapping")
-        unknown = [str(key) for key in document if key not in TOP_KEYS]
-        if unknown:
-            raise InputError(f"unknown key {unknown[0]!r} in the model (known: {', '.join(TOP_KEYS)})")
-        if document.get("schema_version", SCHEMA_VERSION) != SCHEMA_VERSION:
-            raise InputError(f"Bouc-Wen schema_version {document.get('schema_version')!r} is not supported")
-        if document.get("kind") != KIND:
-            raise InputError(f"model kind {document.get('kind')!r} is not {KIND!r}")
-        parameters = document.get("parameters")
-        if not isinstance(parameters, dict):
-            raise InputError("Bouc-Wen parameters must be a mapping")
-        metadata = document.get("metadata") or {}
-        if not isinstance(metadata, dict):
-            raise InputError("metadata must be a mapping")
-        state = held_state_from_dict(document["state"], "Bouc-Wen") if document.get("state") is not None else None
-        return cls(BoucWenParameters(parameters), document.get("output_unit", "m"), state, metadata)
 
 
 class BoucWenStream:

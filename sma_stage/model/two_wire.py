@@ -20,21 +20,16 @@ and the exact inverse is the current that, held over the next period, brings the
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
-import yaml
 
 from sma_stage.errors import InputError
-from sma_stage.io.atomic import atomic_write_text
-from sma_stage.io.plain import plain_values
-from sma_stage.model.held import HeldState, finite_value, held_state_from_dict
+from sma_stage.model.held import HeldCurrentModel, HeldState, finite_value
 
 KIND = "two_wire"
-SCHEMA_VERSION = 1
 SCALARS = ("tau_a_s", "tau_b_s", "heating_reference_a", "coupling_a", "coupling_b", "centre_a", "centre_b",
            "width_a", "width_b", "hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "offset",
            "output_threshold")
@@ -42,7 +37,6 @@ WEIGHTS = ("weights_a", "weights_b", "output_weights")
 POSITIVE = ("tau_a_s", "tau_b_s", "heating_reference_a", "width_a", "width_b")
 NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold")
 MAX_OPERATORS = 50
-TOP_KEYS = ("schema_version", "kind", "output_unit", "parameters", "state", "metadata")
 HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hysteresis in it, the output a\n"
           "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
 INVERSE_ITERATIONS = 100  # at most this many trial steps per inverse call (a few are the rule)
@@ -277,7 +271,7 @@ TwoWireState = HeldState  # what a record leaves the model in (sma_stage.model.h
 
 
 @dataclass(frozen=True)
-class TwoWireModel:
+class TwoWireModel(HeldCurrentModel):
     """A two-wire model: parameters, output unit, the state a record left (None: not known) and metadata."""
 
     parameters: TwoWireParameters
@@ -285,15 +279,14 @@ class TwoWireModel:
     state: TwoWireState | None = None
     metadata: Mapping[str, object] = field(default_factory=dict, compare=False)
 
-    kind = KIND
+    KIND = KIND
+    FAMILY = "two-wire"
+    HEADER = HEADER
 
     def __post_init__(self) -> None:
         if not isinstance(self.parameters, TwoWireParameters):
             raise InputError(f"parameters must be TwoWireParameters, got {type(self.parameters).__name__}")
-        if not isinstance(self.output_unit, str) or not self.output_unit.strip():
-            raise InputError(f"output_unit must be a non-empty string, got {self.output_unit!r}")
-        if self.state is not None and len(self.state.values) != self.state_size:
-            raise InputError(f"state holds {len(self.state.values)} values; the model has {self.state_size}")
+        self._check_common()
 
     @property
     def state_size(self) -> int:
@@ -310,10 +303,6 @@ class TwoWireModel:
         """The slower wire's time constant [s]: the lag the compensator's lead undoes."""
         return max(self.parameters.values["tau_a_s"], self.parameters.values["tau_b_s"])
 
-    def without_state(self) -> TwoWireModel:
-        """The same model with no carried state."""
-        return replace(self, state=None)
-
     def rest_state(self) -> np.ndarray:
         """The state vector of a stage long at zero current."""
         params = self.parameters
@@ -321,73 +310,18 @@ class TwoWireModel:
         _rest(params.as_array(), params.wire_operators, params.output_operators, state)
         return state
 
-    # --- forward -------------------------------------------------------------------------------
-
-    def run(self, t: np.ndarray, u: np.ndarray, state: TwoWireState | None = None
-            ) -> tuple[np.ndarray, TwoWireState]:
-        """(output at each sample [output unit], the state at the last sample): from a stage long at rest
-        (zero current up to the first sample), or from `state` (what an earlier record left: its current held
-        until this record's first sample)."""
-        t, u = _record(t, u)
+    def _advance_record(self, t: np.ndarray, u: np.ndarray, values: np.ndarray, held: float, first_step_s: float,
+                        out: np.ndarray) -> None:
         params = self.parameters
-        vector = params.as_array()
-        if state is None:
-            values, held, first = self.rest_state(), 0.0, 0.0
-        else:
-            values, held = np.array(state.values, dtype=float), state.current_a
-            first = float(t[0] - state.time_s)
-            if first < 0.0:
-                raise InputError(f"the record starts at {t[0]:g} s, before the carried state ({state.time_s:g} s)")
-        out = np.empty(t.size)
-        _run(t, u, vector, params.wire_operators, params.output_operators, values, held, first, out)
-        return out, TwoWireState(float(t[-1]), float(u[-1]), tuple(values.tolist()))
+        _run(t, u, params.as_array(), params.wire_operators, params.output_operators, values, held, first_step_s, out)
 
-    def predict(self, t: np.ndarray, u: np.ndarray, state: TwoWireState | None = None) -> np.ndarray:
-        """Output [output unit] for a record (t [s] increasing, u [A]); see run."""
-        return self.run(t, u, state)[0]
+    @staticmethod
+    def _parameters_from_dict(document: object) -> TwoWireParameters:
+        return TwoWireParameters.from_dict(document)
 
     def stream(self, state: TwoWireState | None = None, max_current_a: float = 5.0) -> TwoWireStream:
         """A sample-at-a-time forward and exact inverse, from rest or from state."""
         return TwoWireStream(self, state, max_current_a)
-
-    # --- YAML ----------------------------------------------------------------------------------
-
-    def to_dict(self) -> dict[str, object]:
-        """The YAML document as plain values."""
-        document: dict[str, object] = {"schema_version": SCHEMA_VERSION, "kind": KIND, "output_unit": self.output_unit,
-                                       "parameters": self.parameters.to_dict()}
-        if self.state is not None:
-            document["state"] = self.state.to_dict()
-        if self.metadata:
-            document["metadata"] = dict(self.metadata)
-        return document
-
-    def to_yaml_text(self) -> str:
-        """The model file's text."""
-        return HEADER + yaml.safe_dump(plain_values(self.to_dict()), sort_keys=False)
-
-    def save(self, path: str | os.PathLike) -> None:
-        """Write the model file atomically."""
-        atomic_write_text(path, self.to_yaml_text())
-
-    @classmethod
-    def from_dict(cls, document: object) -> TwoWireModel:
-        """The model from a parsed YAML document (kind two_wire); InputError naming the first bad key."""
-        if not isinstance(document, dict):
-            raise InputError("the model: expected a mapping")
-        unknown = [str(key) for key in document if key not in TOP_KEYS]
-        if unknown:
-            raise InputError(f"unknown key {unknown[0]!r} in the model (known: {', '.join(TOP_KEYS)})")
-        if document.get("schema_version", SCHEMA_VERSION) != SCHEMA_VERSION:
-            raise InputError(f"two-wire schema_version {document.get('schema_version')!r} is not supported")
-        if document.get("kind") != KIND:
-            raise InputError(f"model kind {document.get('kind')!r} is not {KIND!r}")
-        metadata = document.get("metadata") or {}
-        if not isinstance(metadata, dict):
-            raise InputError("metadata must be a mapping")
-        model = cls(TwoWireParameters.from_dict(document.get("parameters")), document.get("output_unit", "m"),
-                    None, metadata)
-        return replace(model, state=_state(document["state"])) if document.get("state") is not None else model
 
 
 class TwoWireStream:
@@ -441,13 +375,3 @@ class TwoWireStream:
 
 def _finite(value: object, name: str) -> float:
     return finite_value(value, name, "two-wire")
-
-
-def _record(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from sma_stage.model.identified import _record as checked
-
-    return checked(t, u)
-
-
-def _state(entry: object) -> TwoWireState:
-    return held_state_from_dict(entry, "two-wire")
