@@ -22,11 +22,10 @@ from sma_stage.commands.paper import evaluate_paper
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.model import IdentifiedModel, forward, inverse, load_model_file
-from sma_stage.nodes.launch import CONFIG_DIR
+from sma_stage.nodes.launch import CONFIG_DIR, DEFAULT_MODEL_FILE
 from sma_stage.plots import Panel, save_panels
 from sma_stage.signals import paper_validation_signal
 
-DEFAULT_MODEL = CONFIG_DIR / "model_default.yaml"
 MAX_CURRENT_A = 5.0
 
 
@@ -357,7 +356,7 @@ def track_with_both_models(client: object, session: StageSession, stroke: tuple[
                                                        check)
         client.set_parameters("compensator", {"feedback": True})
         runs["identified, PI loop"] = tracking_run(session, "identified model, PI loop", stroke, settings, check)
-    client.set_parameters("compensator", {"model": "", "model_file": str(DEFAULT_MODEL), "feedback": False})
+    client.set_parameters("compensator", {"model": "", "model_file": str(DEFAULT_MODEL_FILE), "feedback": False})
     ok, message = client.trigger("compensator/reload")
     if not ok:
         raise InputError(f"compensator ~/reload: {message}")
@@ -494,7 +493,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the demonstration and print its figures."""
     parser = argparse.ArgumentParser(prog="sma_stage.demo", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="folder for plots and reports")
-    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="GPI model file to compensate with")
+    parser.add_argument("--model", type=Path, default=DEFAULT_MODEL_FILE, help="GPI model file to compensate with")
     parser.add_argument("--no-nodes", action="store_true", help="skip part 3 (the ROS 2 nodes end to end)")
     parser.add_argument("--time-scale", type=float, default=EndToEndSettings.time_scale,
                         help="simulated seconds per wall second in part 3")

@@ -12,12 +12,12 @@ import pytest
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import imc_gains
 from sma_stage.control.thermal import ThermalState
-from sma_stage.demo import DEFAULT_MODEL
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
 from sma_stage.model.effects import EffectState, lag_step
+from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 
-SHIPPED = load_model_file(DEFAULT_MODEL)
+SHIPPED = load_model_file(DEFAULT_MODEL_FILE)
 MODEL = IdentifiedModel(SHIPPED.parameters, SHIPPED.operators)  # its GPI, without the shipped lag
 LIMIT_A = 5.0
 UNLIMITED = 1e12  # a lead limit no step reaches: the exact lead
@@ -392,9 +392,9 @@ sys.path.insert(0, "test")
 from test_two_wire import example_model
 from sma_stage.control import Compensator
 from sma_stage.model import _kernels, load_model_file, two_wire
-from sma_stage.demo import DEFAULT_MODEL
+from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 Compensator(example_model(), 5.0)
-Compensator(load_model_file(DEFAULT_MODEL), 5.0)
+Compensator(load_model_file(DEFAULT_MODEL_FILE), 5.0)
 print(len(two_wire._command_for.signatures), len(_kernels.exact_inverse_step.signatures))
 """
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,

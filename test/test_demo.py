@@ -1,10 +1,10 @@
 """The demonstration runs end to end on the model and its figures make sense."""
 
-from sma_stage.demo import DEFAULT_MODEL, compensation_demo, main
+from sma_stage.demo import DEFAULT_MODEL_FILE, compensation_demo, main
 
 
 def test_exact_inverse_removes_the_hysteresis_that_a_linear_map_leaves(tmp_path):
-    errors = compensation_demo(DEFAULT_MODEL, tmp_path)
+    errors = compensation_demo(DEFAULT_MODEL_FILE, tmp_path)
     assert errors["exact inverse"]["max_pct"] < 1e-6
     assert errors["linear map, no compensation"]["rms_pct"] > 5.0
     assert errors["exact inverse"]["rms_pct"] < errors["analytic inverse"]["rms_pct"]

@@ -24,7 +24,8 @@ from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, wait_fo
 TIME_SCALE = 50.0  # simulated s per wall s: one 0.5 s stage step every 10 ms
 STEP_S = 0.5  # simulated s per stage step, control period and setpoint
 EXCITE_S = 500.0
-LOAD_STEP_S = 3000.0  # the stage's load step [s of simulated time]: after the refit and the watch's calibration
+LOAD_STEP_S = 4200.0  # the stage's load step [s of simulated time]: after the refit (it ended at 1618 s on a cold
+# numba cache beside a CPU-bound process; the watch calibrates for 1100 s after it)
 LOAD_STEP_N = 8.0  # the 2 N of the bench is flagged too (bench/bench_watch.py); here the test must not be marginal
 PERIOD_S = 100.0  # the tracked sine's
 COMPARED_S = 300.0  # tracking error compared over this long before the step and after the swap
@@ -80,9 +81,6 @@ class Tracking:
 def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
     domain = int(os.environ["ROS_DOMAIN_ID"])
     with NodeProcesses(tmp_path / "nodes", domain) as nodes:
-        nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0,
-                                   "use_sim_time": True, "load_change_n": LOAD_STEP_N,
-                                   "load_change_time_s": LOAD_STEP_S}, [CONFIG_DIR / "stage.yaml"])
         nodes.start("compensator_node", {"rate_hz": 1.0 / STEP_S, "use_sim_time": True},
                     [CONFIG_DIR / "compensator.yaml"])
         nodes.start("identification_node", {"excite_duration": EXCITE_S, "excite_rate_hz": 1.0 / STEP_S, "operators": 5,
@@ -91,8 +89,14 @@ def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
                                              "on_drift": "refit", "drift_refit_record": 400.0},
                     [CONFIG_DIR / "identification.yaml"])
         with RosClient(domain, "watch_test", use_sim_time=True) as client:
-            client.wait_for_services(["stage/stop", "compensator/reload", "identification/refit",
-                                      "identification/rollback"], 60.0, nodes.check_running)
+            # the stage, whose clock the others run on, last: their start (seconds on a cold numba cache) is not
+            # simulated time lost before the load step
+            client.wait_for_services(["compensator/reload", "identification/refit", "identification/rollback"],
+                                     60.0, nodes.check_running)
+            nodes.start("stage_node", {"rate_hz": 100.0, "time_scale": TIME_SCALE, "command_timeout": 5.0,
+                                       "use_sim_time": True, "load_change_n": LOAD_STEP_N,
+                                       "load_change_time_s": LOAD_STEP_S}, [CONFIG_DIR / "stage.yaml"])
+            client.wait_for_services(["stage/stop"], 60.0, nodes.check_running)
             tracking = Tracking(client)
             first = refit_after_excitation(client, nodes.check_running)
             assert first["compensator"]["pushed"], first["compensator"]["message"]
@@ -100,6 +104,7 @@ def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
             low, high = min(tracking.positions), max(tracking.positions)
             tracking.middle, tracking.amplitude = 0.5 * (low + high), 0.3 * (high - low)
             started_s = client.now_s()
+            print(f"tracking from {started_s:.0f} s of simulated time")
             assert started_s + 1500.0 < LOAD_STEP_S, f"the refit took until {started_s:.0f} s of simulated time"
 
             def watch_state_at(time_s: float) -> str | None:

@@ -233,6 +233,18 @@ class PathMemory:
         return residual - reference, spread
 
 
+def load_kernels(model: object) -> None:
+    """Run the watch's compiled kernels and the model's forward once on a throwaway record, so that they load (or
+    build: seconds on a cold numba cache) now and not in a node's first callback."""
+    t_s = np.arange(2 * PATH_NEIGHBOURS, dtype=float)
+    ModelWatch(model).step(t_s, np.zeros_like(t_s), np.zeros_like(t_s))
+    memory = PathMemory()
+    features = memory.features(t_s, np.sin(t_s))
+    memory.remember(t_s, features, np.cos(t_s))
+    memory.build()
+    memory.innovations(features, np.cos(t_s), 1.0, PASS_GAP_S, 1.0)
+
+
 def thinned_to_rate(t_s: np.ndarray, rate_hz: float) -> np.ndarray:
     """Indices of the samples kept when at most rate_hz per second of t_s [s] are: the first of each 1/rate_hz."""
     slots = np.floor(t_s * rate_hz)

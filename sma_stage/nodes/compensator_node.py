@@ -74,10 +74,9 @@ from sma_stage.nodes._common import (
     quiet_on_shutdown,
     run_node,
 )
-from sma_stage.nodes.launch import CONFIG_DIR
+from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 from sma_stage.nodes.model_watch import model_message
 
-DEFAULT_MODEL_FILE = CONFIG_DIR / "model_default.yaml"
 MODEL_SOURCES = ("model_file", "model")
 REBUILD_PARAMETERS = (*MODEL_SOURCES, "inverse_method", "max_current")
 TUNINGS = ("imc", "manual")

@@ -42,6 +42,7 @@ def find_config_dir(package_file: Path = Path(__file__)) -> Path:
 
 
 CONFIG_DIR = find_config_dir()
+DEFAULT_MODEL_FILE = CONFIG_DIR / "model_default.yaml"  # the model the compensator starts with
 STOP_TIMEOUT_S = 10.0
 _PR_SET_PDEATHSIG = 1
 

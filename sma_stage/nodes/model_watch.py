@@ -18,9 +18,11 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from sma_stage.control.drives import AnyModel
-from sma_stage.identify.watch import DriftTest, ModelWatch, RecentRecord
+from sma_stage.identify.watch import DriftTest, ModelWatch, RecentRecord, load_kernels
 from sma_stage.io.rosbag_io import output_times
+from sma_stage.model.identified import load_model_file
 from sma_stage.nodes._common import STATE_PUBLISH_QOS
+from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 
 WATCH_PERIOD_S = 0.2  # the queued samples are run through the model this often
 QUEUE_LENGTH = 100_000  # samples kept for the watch between two runs [messages per topic]
@@ -51,6 +53,7 @@ class WatchChannel:
         self.last_sample_ns: int | None = None
         self._reported_state = "no_model"
         self.residual_pub = owner.create_publisher(JointState, "~/residual", STATE_PUBLISH_QOS)
+        load_kernels(load_model_file(DEFAULT_MODEL_FILE))
 
     def set_model(self, model: AnyModel, source: str) -> None:
         """A new model in force: the watch starts again with it, from where the recent record leaves it."""
