@@ -21,6 +21,7 @@ from test_hardware import rig_config  # noqa: E402
 from sma_stage.identify.cancel import Cancelled, cancellable, check_cancelled  # noqa: E402
 from sma_stage.identify.diagnosis import Workers  # noqa: E402
 from sma_stage.identify.fit import fit_gpi  # noqa: E402
+from sma_stage.nodes._common import COMMAND_QOS, make_executor, spin_while  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, wait_for  # noqa: E402
 from sma_stage.signals import paper_identification_signal  # noqa: E402
 
@@ -54,6 +55,53 @@ def test_each_node_stops_cleanly_on_a_signal(tmp_path, executable, number):
     assert not [line for line in output.splitlines() if any(mark in line for mark in BAD_OUTPUT)], output
     if executable == "stage_node":
         assert "output off (confirmed)" in output and "published" in output
+
+
+def test_the_spin_loop_ends_on_a_stop_under_a_flood_of_messages():
+    """rclpy 7.1's EventsExecutor looks at its spin timeout only when its queue runs empty: an identification
+    node flooded with commands faster than it handled them spun on after SIGTERM until it was killed (1 of 100
+    stops in bench_shutdown). The stop future now ends the spin whatever the queue holds."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from rclpy.task import Future
+    from std_msgs.msg import Float64
+
+    context = Context()
+    rclpy.init(context=context, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
+    flooded, flooder = Node("flooded", context=context), Node("flooder", context=context)
+    flooded.create_subscription(Float64, "flood", lambda message: time.sleep(0.001), COMMAND_QOS)
+    publisher = flooder.create_publisher(Float64, "flood", COMMAND_QOS)
+    executor = make_executor("events", context)
+    executor.add_node(flooded)
+    flooding = threading.Event()
+    flooding.set()
+
+    def flood() -> None:
+        while flooding.is_set():
+            publisher.publish(Float64(data=1.0))
+
+    stopped = Future()
+    spinner = threading.Thread(target=spin_while, args=(executor, stopped, context), daemon=True)
+    publishing = threading.Thread(target=flood, daemon=True)
+    try:
+        spinner.start()
+        publishing.start()
+        time.sleep(1.0)
+        sent = time.monotonic()
+        stopped.set_result("SIGTERM")
+        spinner.join(timeout=STOP_LIMIT_S)
+        seconds = time.monotonic() - sent
+        assert not spinner.is_alive(), f"the spin loop went on {seconds:.1f} s after the stop"
+        assert seconds < 1.0
+    finally:
+        flooding.clear()
+        publishing.join()
+        spinner.join()
+        executor.shutdown(timeout_sec=1.0)
+        flooded.destroy_node()
+        flooder.destroy_node()
+        context.try_shutdown()
 
 
 def test_a_signal_during_a_long_start_ends_the_start(tmp_path):

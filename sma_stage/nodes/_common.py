@@ -286,29 +286,35 @@ class StopRequest:
         self.phase = "starting"
         self.signal_name: str | None = None
         self._previous: dict[int, object] = {}
+        self.stopped = Future()  # done once a signal asked the spin loop to end: spin_while's
+        self._signalled = threading.Event()
 
     def install(self) -> None:
         """Handle SIGINT and SIGTERM in this process (main thread only)."""
         for number in (signal.SIGINT, signal.SIGTERM):
             self._previous[number] = signal.signal(number, self._on_signal)
+        threading.Thread(target=self._complete_on_signal, name="stop-request", daemon=True).start()
 
     def restore(self) -> None:
         """Give SIGINT and SIGTERM back their previous handlers."""
         for number, handler in self._previous.items():
             signal.signal(number, handler)
         self._previous.clear()
+        self._signalled.set()
 
     def _on_signal(self, number: int, frame: object) -> None:
         self.signal_name = self.signal_name or signal.Signals(number).name
         if self.phase == "starting":
             raise KeyboardInterrupt
         if self.phase == "spinning":
-            self.phase = "stopping"
+            self.phase = "stopping"  # before the Event: a second signal inside set() must not take its lock again
+            self._signalled.set()
 
-    @property
-    def spinning(self) -> bool:
-        """True until a signal asked the spin loop to end."""
-        return self.phase == "spinning"
+    def _complete_on_signal(self) -> None:
+        """Complete `stopped` from a thread of its own: its done callbacks (the executor's stop) take locks that
+        the main thread, which runs signal handlers, may hold when the signal lands."""
+        self._signalled.wait()
+        self.stopped.set_result(self.signal_name)
 
 
 class StartedNodes:
@@ -362,7 +368,7 @@ def run_nodes(makers: Sequence[Callable[..., Node]], args: Sequence[str] | None 
         gc.collect()
         gc.freeze()  # what start-up built lives on: the collector's passes stop walking it
         stop.phase = "spinning"
-        spin_while(executor, lambda: stop.spinning)
+        spin_while(executor, stop.stopped)
     except (InputError, ParameterException) as error:
         name = getattr(building, "NODE_NAME", "sma_stage")
         rclpy.logging.get_logger(name).error(f"cannot start: {' '.join(str(error).split())}")
@@ -409,15 +415,18 @@ def make_executor(kind: str, context: Context | None = None) -> object:
     raise InputError(f"executor must be one of {', '.join(EXECUTORS)}, got {kind!r}")
 
 
-def spin_while(executor: object, running: Callable[[], bool], context: Context | None = None) -> None:
-    """Spin executor while running() is true and its context (the default context when None) is not shut
-    down, looking at both every SPIN_SLICE_S."""
-    never = Future()
-    while running() and rclpy.ok(context=context):
+def spin_while(executor: object, stopped: Future, context: Context | None = None) -> None:
+    """Spin executor until `stopped` is done or its context (the default context when None) is shut down,
+    looking at both every SPIN_SLICE_S.
+
+    The EventsExecutor is spun until `stopped` itself: its timeout is looked at only when its queue runs empty
+    (rclpy 7.1's EventsQueue::RunUntil), which a flood of messages can keep from happening for ever; the future's
+    completion stops it whatever the queue holds."""
+    while not stopped.done() and rclpy.ok(context=context):
         if isinstance(executor, SingleThreadedExecutor):
             executor.spin_once(timeout_sec=SPIN_SLICE_S)
         else:  # EventsExecutor.spin() busy-waits in rclpy 7.1.x; this call does not
-            executor.spin_until_future_complete(never, timeout_sec=SPIN_SLICE_S)
+            executor.spin_until_future_complete(stopped, timeout_sec=SPIN_SLICE_S)
 
 
 def exit_with(code: int) -> None:

@@ -204,6 +204,7 @@ class RosClient:
         from rclpy.context import Context
         from rclpy.node import Node
         from rclpy.parameter import Parameter
+        from rclpy.task import Future
 
         from sma_stage.nodes._common import make_executor
 
@@ -215,14 +216,14 @@ class RosClient:
         self.executor = make_executor(executor_kind, self.context)
         self.executor.add_node(self.node)
         self._clients: dict[tuple[object, str], Any] = {}
-        self._running = True
+        self._stopped = Future()
         self._thread = threading.Thread(target=self._spin, name="ros-client", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
         from sma_stage.nodes._common import spin_while
 
-        spin_while(self.executor, lambda: self._running, self.context)
+        spin_while(self.executor, self._stopped, self.context)
 
     def now_s(self) -> float:
         """The node clock [s] (simulated time with use_sim_time; 0 before the first /clock)."""
@@ -325,7 +326,7 @@ class RosClient:
 
     def close(self) -> None:
         """Stop spinning, then stop the executor, destroy the node and shut the context down."""
-        self._running = False
+        self._stopped.set_result(None)
         self._thread.join(timeout=2.0)
         self.executor.shutdown(timeout_sec=2.0)
         self.node.destroy_node()
