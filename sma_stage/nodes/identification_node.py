@@ -65,7 +65,7 @@ from std_srvs.srv import Trigger
 from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
-from sma_stage.identify.diagnosis import lower_priority
+from sma_stage.identify.diagnosis import lower_priority, warm_up
 from sma_stage.identify.families import check_families
 from sma_stage.identify.history import ModelHistory, judge_swap, started_from
 from sma_stage.identify.pipeline import FIT_SAMPLES, deployed_held_out, identify_recording
@@ -387,6 +387,9 @@ class IdentificationNode(Node):
             self.create_timer(WATCH_PERIOD_S, quiet_on_shutdown(self, self.on_watch_tick))
         self.create_subscription(String, f"{str(self.values['compensator_name']).rstrip('/')}/model",
                                  self.on_model_in_force, REPORT_QOS)
+        # The refit's kernels load (or build, seconds on a cold numba cache) now: in the refit's lowered-priority
+        # thread a build beside CPU-bound work held a stop for over 5 s.
+        warm_up()
         self.refit_service = WorkerService(self, Trigger, "refit", self.on_refit)
         self.rollback_service = WorkerService(self, Trigger, "rollback", self.on_rollback)
         self.get_logger().info("identification ready"
