@@ -13,15 +13,18 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from sma_stage.commands.paper import evaluate_paper
+from sma_stage.commands.plot import recording_panels
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
+from sma_stage.io import read_bag
 from sma_stage.model import IdentifiedModel, forward, inverse, load_model_file
+from sma_stage.model.identified import load_any_model_file
 from sma_stage.nodes.launch import CONFIG_DIR, DEFAULT_MODEL_FILE
 from sma_stage.plots import Panel, save_panels
 from sma_stage.signals import paper_validation_signal
@@ -416,7 +419,8 @@ def run_end_to_end(nodes: object, settings: EndToEndSettings, out_dir: Path, lau
         runs = track_with_both_models(client, session, stroke, settings, nodes.check_running,
                                       identified=bool(report["compensator"]["pushed"]))
     exits = nodes.stop_all()
-    save_tracking_plots(out_dir / "tracking.png", [runs[key] for key in RUN_ORDER if key in runs])
+    loop = identification_loop(nodes.log_dir / "session_bag", Path(report["model_file"]), settings.excite_duration_s)
+    save_tracking_plots(out_dir / "tracking.png", [runs[key] for key in RUN_ORDER if key in runs], loop)
     return {"report": report, "stroke_m": stroke, "compensator_holds_fit": pushed, "runs": runs,
             "exit_codes": exits, "domain_id": nodes.domain_id, "work_dir": nodes.log_dir,
             "seconds": {"start": ready - launched_at, "excite_and_refit": refitted - ready,
@@ -435,10 +439,27 @@ def end_to_end_demo(out_dir: Path, settings: EndToEndSettings = EndToEndSettings
         return run_end_to_end(nodes, settings, out_dir, launched_at)
 
 
-def save_tracking_plots(path: Path, runs: Sequence[TrackingRun]) -> None:
-    """Per run: setpoint and position against time, the current command, and position against setpoint
-    over the signal (t >= 0; before it the stage settles)."""
-    panels = []
+def identification_loop(bag: Path, model_file: Path, duration_s: float, input_topic: str = "current_applied"
+                        ) -> list[Panel]:
+    """The excitation as the session's bag recorded it (from the first nonzero current on input_topic, duration_s
+    [s]) with the identified model's prediction from rest: the loop, the output over time and the residual, as
+    `gpi_tool plot` draws them."""
+    series = read_bag(bag, input_topic=input_topic)
+    start = float(series.t[np.argmax(series.input != 0.0)])
+    excitation = series.window(start, start + duration_s)
+    predicted = load_any_model_file(model_file).predict(excitation.t, excitation.input)
+    panels = recording_panels(excitation, "m", predicted)
+    loop, (_, output), (residual, _) = panels["loop.png"][0], panels["time_series.png"], panels["residual.png"]
+    titles = ("identification: the loop, measured and identified model", "identification: output over time",
+              "identification: residual")
+    return [replace(panel, title=title) for panel, title in zip((loop, output, residual), titles, strict=True)]
+
+
+def save_tracking_plots(path: Path, runs: Sequence[TrackingRun], identification: Sequence[Panel] = ()) -> None:
+    """The identification's panels (identification_loop) in the first row, then per run: setpoint and position
+    against time, the current command, and position against setpoint over the signal (t >= 0; before it the
+    stage settles)."""
+    panels = list(identification)
     for run in runs:
         setpoint_um, position_um = 1e6 * run.setpoint, 1e6 * run.position
         signal = run.t >= 0.0
