@@ -56,7 +56,8 @@ from sma_stage.identify.fit import (
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
 from sma_stage.identify.start import StartFit, estimate_start, start_fit
-from sma_stage.model.effects import Effect
+from sma_stage.model.effects import EFFECT_KINDS, Effect
+from sma_stage.model.effects import PARAMETERS as EFFECT_PARAMETERS
 from sma_stage.model.forward import forward
 from sma_stage.model.identified import IdentifiedModel, Start
 from sma_stage.model.parameters import GPIParameters
@@ -530,18 +531,15 @@ def lower_priority(thread: bool = False) -> None:
         pass
 
 
-WARM_UP_EFFECTS = (Effect("thermal_lag", {"tau_s": 2.0, "joule_reference_a": 1.0}), Effect("delay", {"delay_s": 0.5}),
-                   Effect("rate", {"rate_gain_s_per_A": 0.1}), Effect("drift", {"drift_m_per_s": 1e-9}),
-                   Effect("wire_thermal", {"tau_a_s": 2.0, "tau_b_s": 3.0, "joule_reference_a": 1.0}))
-
-
 def warm_up() -> None:
     """Load the fit's and the effects' compiled kernels in this process (or build them: seconds on a cold numba
     cache): a small fit of a loop, then a model with each effect run over it."""
     u = np.sin(np.linspace(0.0, 4.0 * np.pi, 60))
     found = fit_gpi(u, np.tanh(u), operators=5, max_iterations=3)
     t_s = np.arange(u.size, dtype=float)
-    for effect in WARM_UP_EFFECTS:
+    for kind in EFFECT_KINDS:
+        required, optional = EFFECT_PARAMETERS[kind]
+        effect = Effect(kind, {name: 1.0 for name in required or optional[:1]})
         IdentifiedModel(found.parameters, 5, (effect,)).predict(t_s, u)
 
 
