@@ -11,7 +11,9 @@ stroke (period 300 s), two incommensurate cosines over the same range (the paper
 periods 200 s and 314 s) and random levels held 60 s each. Nothing changing: `--hours` of tracking per seed
 (the sine) and per setpoint, every alarm counted (the tests restart after each). Changes, each from 3000 s on
 (the model long in force, the watch calibrated): a load step of 2 N, an ambient drift of 0.002 K/s, a creep of
-50 um (tau 200 s) switched on; the delay of the first flag after it and which test gave it.
+50 um (tau 200 s) switched on; the delay of the first flag after it and which test gave it. Last, how far each
+change moves the residual in its first minutes (the same seed with and without it), beside how far it moves
+from one period of the sine to the next with nothing changed: what a test of the residual has to resolve.
 """
 
 from __future__ import annotations
@@ -39,6 +41,9 @@ CHUNK_STEPS = 10  # samples per call of the watch: one second at 0.1 s
 CHANGE_S = 3000.0  # every change starts here, the model in force and the watch long calibrated
 AFTER_CHANGE_S = 1200.0
 HOLD_S = 60.0  # the random levels' hold
+SINE_PERIOD_S = 300.0
+WINDOW_S = DriftTest().window_s  # the residual's moves are averaged over the watch's window [s]
+MOVED_AFTER_S = (60.0, 120.0, 240.0)  # after the change [s]
 CHANGES = {"load step 2 N": Effects(load_change_n=2.0, load_change_time_s=CHANGE_S),
            "ambient drift 0.002 K/s": Effects(ambient_drift_k_per_s=0.002, ambient_drift_start_s=CHANGE_S),
            "creep 50 um (tau 200 s) switched on": Effects(creep_amplitude_m=50e-6, creep_start_s=CHANGE_S)}
@@ -50,42 +55,76 @@ def setpoints(stroke: tuple[float, float]) -> dict[str, Setpoint]:
     low, high = stroke
     middle, amplitude = 0.5 * (low + high), 0.5 * FRACTION * (high - low)
     levels = middle + amplitude * np.random.default_rng(5).uniform(-1.0, 1.0, 10_000)
-    return {"sine": lambda t: middle + amplitude * np.sin(2 * np.pi * t / 300.0),
+    return {"sine": lambda t: middle + amplitude * np.sin(2 * np.pi * t / SINE_PERIOD_S),
             "two cosines": lambda t: middle + 0.5 * amplitude * (np.cos(0.01 * np.pi * t) + np.cos(0.02 * t)),
             "held random levels": lambda t: float(levels[int(t // HOLD_S)])}
 
 
-def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int
-        ) -> tuple[list[tuple[float, str]], float, float, float]:
-    """((time [s], test) of each drift flag, restarting the tests after each; the tracking RMS [m]; the path test's
-    mean coverage of the windows it looked at; the watch's mean cost per sample [us])."""
+def record(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int) -> np.ndarray:
+    """The PI loop tracking setpoint on a fresh simulator: rows of (time at the end of each step [s], applied current [A],
+    measured position [m], setpoint [m]), one per CONTROL_STEP_S."""
     core = Compensator(model, MAX_CURRENT_A, **imc_gains(model, CONTROL_STEP_S))
     stage = StageSimulator(effects=effects, seed=seed)
-    watch = ModelWatch(model)
     steps = int(round(seconds / CONTROL_STEP_S))
     position = stage.state.measured_position_m
-    chunk, alarms, errors, coverages, watch_s = [], [], [], [], 0.0
+    rows = np.empty((steps, 4))
     for k in range(steps):
         t = k * CONTROL_STEP_S
         target = setpoint(t)
         current = core.command(target, position, CONTROL_STEP_S if k else 0.0)
         position = stage.step(current, CONTROL_STEP_S).measured_position_m
-        errors.append(position - target)
-        chunk.append((t + CONTROL_STEP_S, current, position))
-        if len(chunk) < CHUNK_STEPS:
-            continue
+        rows[k] = (t + CONTROL_STEP_S, current, position, target)
+    return rows
+
+
+def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int
+        ) -> tuple[list[tuple[float, str]], float, float, float]:
+    """((time [s], test) of each drift flag, restarting the tests after each; the tracking RMS [m]; the path test's
+    mean coverage of the windows it looked at; the watch's mean cost per sample [us]). The watch is fed the record
+    CHUNK_STEPS samples at a time, as it would be while the stage runs (it only looks back)."""
+    rows = record(model, setpoint, effects, seconds, seed)
+    watch = ModelWatch(model)
+    alarms, coverages, watch_s = [], [], 0.0
+    for start in range(0, len(rows) - CHUNK_STEPS + 1, CHUNK_STEPS):
+        chunk = rows[start:start + CHUNK_STEPS]
         windows = watch.cusum.windows
         started = time.perf_counter()
-        watch.step(*(np.array(column) for column in zip(*chunk, strict=True)))
+        watch.step(chunk[:, 0], chunk[:, 1], chunk[:, 2])
         watch_s += time.perf_counter() - started
-        chunk = []
         if watch.cusum.windows > windows and watch.coverage is not None:
             coverages.append(watch.coverage)
         if watch.state == "drift":
-            alarms.append((t + CONTROL_STEP_S, "path" if watch.path_drift else "level"))
+            alarms.append((float(chunk[-1, 0]), "path" if watch.path_drift else "level"))
             watch.restart_tests()  # the model runs on
     coverage = float(np.mean(coverages)) if coverages else float("nan")
-    return alarms, float(np.sqrt(np.mean(np.square(errors)))), coverage, 1e6 * watch_s / steps
+    tracking_rms = float(np.sqrt(np.mean(np.square(rows[:, 2] - rows[:, 3]))))
+    return alarms, tracking_rms, coverage, 1e6 * watch_s / len(rows)
+
+
+def residual_moved(model, setpoint: Setpoint, seed: int, after_s: tuple[float, ...]) -> dict[str, list[float]]:
+    """How far each change moves the model's residual [m]: the mean over the WINDOW_S ending each of after_s [s]
+    after the change of (residual with the change - residual without it), the same seed and setpoint; and, as
+    "nothing (one period later)", how far it moves with nothing changed between one sine period and the next."""
+    seconds = CHANGE_S + max(after_s)
+
+    def residual(effects: Effects) -> np.ndarray:
+        rows = record(model, setpoint, effects, seconds, seed)
+        return rows[:, 2] - model.run(rows[:, 0], rows[:, 1], None)[0]
+
+    quiet = residual(Effects())
+    per_window = int(round(WINDOW_S / CONTROL_STEP_S))
+
+    def window_mean(values: np.ndarray, end_s: float) -> float:
+        end = int(round((CHANGE_S + end_s) / CONTROL_STEP_S))
+        return float(np.mean(values[end - per_window:end]))
+
+    period = int(round(SINE_PERIOD_S / CONTROL_STEP_S))
+    moved = {"nothing (one period later)": [window_mean(quiet[period:] - quiet[:-period], end_s - SINE_PERIOD_S)
+                                            for end_s in after_s]}
+    for name, effects in CHANGES.items():
+        changed = residual(effects)
+        moved[name] = [window_mean(changed - quiet, end_s) for end_s in after_s]
+    return moved
 
 
 def main() -> int:
@@ -127,6 +166,14 @@ def main() -> int:
         delay, test = (f"{flagged[0][0] - CHANGE_S:.0f}", flagged[0][1]) if flagged else (
             f"none in {AFTER_CHANGE_S:g}", "-")
         print(f"| {kind} | {name} | {delay} | {test} | {early} |")
+    after = " | ".join(f"{end_s:.0f} s after" for end_s in MOVED_AFTER_S)
+    print(f"\nHow far each change moves the residual (sine, seed 1; mean over the {WINDOW_S:g} s ending at each time, "
+          f"with the change less without it) [um], against the model's held-out RMS "
+          f"{1e6 * model.metadata.get('held_out_rms', float('nan')):.1f} um:\n")
+    print(f"| change from 3000 s | {after} |")
+    print("|---" * (1 + len(MOVED_AFTER_S)) + "|")
+    for name, moves in residual_moved(model, kinds["sine"], 1, MOVED_AFTER_S).items():
+        print(f"| {name} | " + " | ".join(f"{1e6 * move:+.2f}" for move in moves) + " |")
     print(f"\nwall time {time.perf_counter() - started:.1f} s")
     return 0
 
