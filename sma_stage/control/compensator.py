@@ -241,6 +241,7 @@ class Compensator:
         self.target_m = 0.0
         self._played_m: float | None = None
         self._commanded = False
+        self._looped = False  # whether the last command ran the PI loop (had a measurement)
         self.saturated = 0
         self.command_a = self.drive.initial_current()
         self._hold_s = 0.0
@@ -248,15 +249,20 @@ class Compensator:
 
     def continue_from(self, previous: Compensator) -> None:
         """Take over the loop of another core (the one this replaces, with another model): the last command, so
-        that the rate limit moves the current from there; the integral, the played target and the setpoint's
-        motion. The model's states stay this core's own (from its carried state)."""
+        that the rate limit moves the current from there; the played target and the setpoint's motion; and the
+        integral, less what this model predicts beyond the other at their states now. The integral holds what
+        the other model got wrong: a model fitted since (after a load step) has most of it in its prediction,
+        and carrying the integral whole would count it twice, an error the loop then takes its integral time to
+        undo. The model's states stay this core's own (from its carried state)."""
         low, high = self.drive.target_bounds
         reach = high - low
+        shift = self.drive.predicted_m - previous.drive.predicted_m if previous._looped else 0.0
         self.command_a = previous.command_a
         self._commanded = previous._commanded
-        self.integral_m = min(reach, max(-reach, previous.integral_m))
-        self._played_m = previous._played_m
-        self.target_m = previous.target_m
+        self._looped = previous._looped
+        self.integral_m = min(reach, max(-reach, previous.integral_m + shift))
+        self._played_m = None if previous._played_m is None else previous._played_m + shift
+        self.target_m = previous.target_m + shift
         self._hold_s = previous._hold_s
         self._setpoint = previous._setpoint
 
@@ -278,6 +284,7 @@ class Compensator:
         elif dt > 0.0:
             self._hold_s = dt
         self.target_m = setpoint
+        self._looped = measured_m is not None
         if measured_m is not None:
             self.target_m = self._pi_target(setpoint, self._bounded(finite_number("measured_m", measured_m)), dt)
         moving = self._setpoint.moves(setpoint, dt)

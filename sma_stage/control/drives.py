@@ -61,6 +61,10 @@ class Drive(Protocol):
     def follow_applied(self, current_a: float, dt_s: float) -> None:
         """Step the states with a current the stage applied for dt_s [s] that the compensator did not send."""
 
+    @property
+    def predicted_m(self) -> float:
+        """The position [m] the model gives at its states now."""
+
     def describe(self) -> str:
         """One line naming the model and its inverse."""
 
@@ -156,6 +160,13 @@ class GPIDrive:
         self.inverse.reset(initial=forward.states, previous_input=seen)
         self.drift_elapsed_s += dt_s
 
+    @property
+    def predicted_m(self) -> float:
+        """The operators played from the inverse's states to what the thermal state lets the GPI see, plus the
+        drift's offset."""
+        forward = GPIForwardStream(self.model.parameters, self.model.operators, initial=self.inverse.states)
+        return float(forward.step(self.thermal.seen)) + self._drift_offset()
+
     def _drift_offset(self) -> float:
         if self._drift is None:
             return 0.0
@@ -208,6 +219,10 @@ class StreamDrive:
 
     def follow_applied(self, current_a: float, dt_s: float) -> None:
         self.advance(current_a, dt_s)
+
+    @property
+    def predicted_m(self) -> float:
+        return self.stream.output
 
     def describe(self) -> str:
         if isinstance(self.model, BoucWenModel):
