@@ -7,9 +7,10 @@ import pytest
 from antagonistic_plant import VARIANTS, records
 
 from sma_stage.errors import InputError
+from sma_stage.identify.diagnosis import Workers
 from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
-from sma_stage.identify.two_wire import fit_two_wire
+from sma_stage.identify.two_wire import TwoWireFitting, fit_two_wire
 from sma_stage.model.two_wire import TwoWireModel, TwoWireParameters
 
 SPAN_M = 6e-4
@@ -168,6 +169,14 @@ def test_the_two_wire_model_identified_on_the_second_stage_validates(nominal_sta
     plain = fit_gpi(u, y, operators=5)
     plain_validation = error_metrics(y_valid, predict(plain, u_valid))
     assert plain_validation.rms_pct >= 2.0 * validation.rms_pct, (plain_validation, validation)
+
+
+def test_a_fit_whose_starts_run_in_worker_processes_is_the_fit_made_in_this_process(nominal_stage, nominal_fit):
+    """The pool's processes search the starts and polish the leaders (beside a diagnosis): the same model."""
+    with Workers(2) as pool:
+        fitting = TwoWireFitting(*nominal_stage["identification"], pool=pool)
+        found = fitting.result()
+    assert found.model == nominal_fit.model and found.evaluations == nominal_fit.evaluations
 
 
 def test_the_family_with_the_lowest_held_out_error_is_chosen_and_bic_parts_near_ties():

@@ -397,6 +397,20 @@ def _recounted(leader: CandidateResult, chain: Chain, ident: Record, valid: Vali
     return attempt(leader.effect, recounted)
 
 
+class Pending:
+    """A job's result to come (Workers.submit): `result()` waits for it, or computes it the first time."""
+
+    def __init__(self, compute: Callable[[], object]) -> None:
+        self._compute: Callable[[], object] | None = compute
+        self._value: object = None
+
+    def result(self) -> object:
+        """The job's result (its exception raised here)."""
+        if self._compute is not None:
+            self._value, self._compute = self._compute(), None
+        return self._value
+
+
 class Workers:
     """Where a round's candidates are fitted: in this process, one after the other (workers 1), or in up to
     `workers` processes at once (a forkserver's children: safe beside the threads of a ROS node). Each
@@ -425,12 +439,23 @@ class Workers:
         _report(progress, doing.format(", ".join(_job_name(job) for job in jobs)) + f" in {self.workers} processes")
         costliest_first = sorted(range(len(jobs)), key=lambda index: -_job_cost(jobs[index]))
         futures = {index: executor.submit(function, *jobs[index]) for index in costliest_first}
+        return [self._answered(futures[index]) for index in range(len(jobs))]
+
+    def submit(self, function: Callable[..., object], *args: object) -> Pending:
+        """function(*args) begun now in a worker process, behind the jobs already waiting; with workers 1, run in
+        this process when its result is asked for."""
+        if self.workers == 1:
+            return Pending(lambda: function(*args))
+        future = self._started().submit(function, *args)
+        return Pending(lambda: self._answered(future))
+
+    def _answered(self, future: Future) -> object:
         try:
-            return [self._result(futures[index]) for index in range(len(jobs))]
+            return self._result(future)
         except BrokenProcessPool:
-            raise InputError("the diagnosis's worker processes ended before answering (killed, out of memory, "
-                             "or a script that calls diagnose with workers > 1 outside "
-                             "`if __name__ == '__main__':`); use workers=1") from None
+            raise InputError("the identification's worker processes ended before answering (killed, out of memory, "
+                             "or a script that identifies with workers > 1 outside `if __name__ == '__main__':`); "
+                             "use workers=1") from None
 
     @staticmethod
     def _result(future: Future) -> object:
@@ -722,7 +747,7 @@ def _with_gpi(chain: Chain, parameters: GPIParameters, operators: int, v_i: np.n
 
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,
              progress: Progress = None, output_unit: str = "m", max_rounds: int = len(EFFECT_NAMES),
-             scored_from: int = 0, workers: int = 1) -> Diagnosis:
+             scored_from: int = 0, workers: int = 1, pool: Workers | None = None) -> Diagnosis:
     """Fit (unless base is given) on ident, test the validation residual, fit and judge every candidate
     effect, add the one that earns its parameters, and search again on top of it, up to max_rounds
     rounds; "none" when the first round adds nothing.
@@ -732,68 +757,70 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     plain GPI lacks also skews the count chosen for it). Later rounds keep the count; after them every
     added effect is fitted again on top of the others (`refine`) and the count chosen once more.
     workers: processes that fit a round's candidates at once (Workers; the result is the same for any count).
-    BLAS runs on one thread meanwhile (one_blas_thread).
+    pool: a caller's Workers to use instead (its `workers` then; it stays open). BLAS runs on one thread
+    meanwhile (one_blas_thread).
     """
     with one_blas_thread():
-        return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, workers)
+        if pool is not None:
+            return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, pool)
+        with Workers(workers) as own:
+            return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, own)
 
 
 def _diagnose(ident: object, valid: object, base: FitResult | None, operators: int | None, progress: Progress,
-              output_unit: str, max_rounds: int, scored_from: int, workers: int) -> Diagnosis:
+              output_unit: str, max_rounds: int, scored_from: int, pool: Workers) -> Diagnosis:
     started = time.perf_counter()
-    pool = Workers(workers)
     ident_record = as_record(ident, "identification")
     valid_record = as_record(valid, "validation")
     if not 0 <= scored_from <= valid_record[0].size - 3:
         raise InputError(f"scored_from must leave at least 3 validation samples, got {scored_from}")
-    with pool:
-        pool.start()
-        validation = Validation(*valid_record, scored_from)
-        t_i, u_i, y_i = ident_record
-        if base is None:
-            _report(progress, "fitting the plain GPI on the identification data")
-            base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
-        chain = Chain((no_effect(t_i, u_i, y_i, base),), base)
-        start_before = validation.predict(chain.model, chain.start)
-        predicted_before = start_before.predicted
-        before = validation.errors(predicted_before)
-        tests_before = validation.tests(predicted_before)
-        failed = [name for name, check in tests_before.checks.items() if not check.passed]
-        _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
-                          + (f"failed: {', '.join(failed)}" if failed else "all passed"))
-        chain, rounds = _search_rounds(chain, ident_record, validation, before, tests_before, operators is None,
-                                       max_rounds, progress, pool)
-        if operators is None and len(chain.effects) > 1:
-            chain = recount_last(chain, ident_record, progress)
-        counts: dict[str, object] = {}
-        if operators is None and chain.last.composable:
-            chain, counts = count_by_held_out(chain, ident_record, validation, progress, pool=pool)
-        changed = bool(chain.effects) or chain.last.operators != base.operators
-        start_after = validation.predict(chain.model, chain.start) if changed else start_before
-        predicted_after = start_after.predicted
-        after = validation.errors(predicted_after) if changed else before
-        tests_after = validation.tests(predicted_after) if changed else tests_before
-        found_order = [found.winner.effect for found in rounds if found.winner is not None]
-        return Diagnosis(
-            effect=found_order[0] if found_order else "none",
-            effects=found_order,
-            evidence=tests_before.evidence(),
-            parameters=chain.parameters,
-            before=before,
-            after=after,
-            base=base,
-            chain=chain,
-            tests_before=tests_before,
-            tests_after=tests_after,
-            candidates=rounds[0].candidates if rounds else [],
-            rounds=rounds,
-            validation_predicted_before=predicted_before,
-            validation_predicted_after=predicted_after,
-            failures=rounds[0].failures if rounds else {},
-            seconds=time.perf_counter() - started,
-            starts={"identification": estimate_start(chain.model, t_i, u_i, y_i), "validation": start_after},
-            operators=counts,
-        )
+    pool.start()
+    validation = Validation(*valid_record, scored_from)
+    t_i, u_i, y_i = ident_record
+    if base is None:
+        _report(progress, "fitting the plain GPI on the identification data")
+        base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
+    chain = Chain((no_effect(t_i, u_i, y_i, base),), base)
+    start_before = validation.predict(chain.model, chain.start)
+    predicted_before = start_before.predicted
+    before = validation.errors(predicted_before)
+    tests_before = validation.tests(predicted_before)
+    failed = [name for name, check in tests_before.checks.items() if not check.passed]
+    _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
+                      + (f"failed: {', '.join(failed)}" if failed else "all passed"))
+    chain, rounds = _search_rounds(chain, ident_record, validation, before, tests_before, operators is None,
+                                   max_rounds, progress, pool)
+    if operators is None and len(chain.effects) > 1:
+        chain = recount_last(chain, ident_record, progress)
+    counts: dict[str, object] = {}
+    if operators is None and chain.last.composable:
+        chain, counts = count_by_held_out(chain, ident_record, validation, progress, pool=pool)
+    changed = bool(chain.effects) or chain.last.operators != base.operators
+    start_after = validation.predict(chain.model, chain.start) if changed else start_before
+    predicted_after = start_after.predicted
+    after = validation.errors(predicted_after) if changed else before
+    tests_after = validation.tests(predicted_after) if changed else tests_before
+    found_order = [found.winner.effect for found in rounds if found.winner is not None]
+    return Diagnosis(
+        effect=found_order[0] if found_order else "none",
+        effects=found_order,
+        evidence=tests_before.evidence(),
+        parameters=chain.parameters,
+        before=before,
+        after=after,
+        base=base,
+        chain=chain,
+        tests_before=tests_before,
+        tests_after=tests_after,
+        candidates=rounds[0].candidates if rounds else [],
+        rounds=rounds,
+        validation_predicted_before=predicted_before,
+        validation_predicted_after=predicted_after,
+        failures=rounds[0].failures if rounds else {},
+        seconds=time.perf_counter() - started,
+        starts={"identification": estimate_start(chain.model, t_i, u_i, y_i), "validation": start_after},
+        operators=counts,
+    )
 
 
 def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: ErrorMetrics,

@@ -8,19 +8,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from sma_stage.errors import InputError
 from sma_stage.identify.bouc_wen import BoucWenFit, fit_bouc_wen
+from sma_stage.identify.diagnosis import Pending, Workers
 from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.free_weights import fit_free_weights
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
-from sma_stage.identify.two_wire import TwoWireFit, fit_two_wire
+from sma_stage.identify.two_wire import TwoWireFit, TwoWireFitting
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
 
 FAMILIES = ("gpi", "gpi_free", "two_wire", "bouc_wen")
+HELD_CURRENT_FAMILIES = ("two_wire", "bouc_wen")  # fitted apart from the GPI's diagnosis, in its workers' processes
 PARSIMONY = 0.05  # families within 5 % (relative) of the best held-out RMS are told apart by BIC
 
 
@@ -56,14 +59,28 @@ def check_families(names: Sequence[str]) -> tuple[str, ...]:
     return tuple(name for name in FAMILIES if name in names)
 
 
-def fit_held_current_row(family: str, ident: Series, record: Series | None, scored_from: int, output_unit: str
-                         ) -> tuple[FamilyRow, TwoWireFit | BoucWenFit | None]:
-    """A held-current family's model (two_wire or bouc_wen) fitted on the identification record and scored on
-    the validation record (`record`, from its sample scored_from: a separate record run from rest, or the whole
-    record whose tail is held out)."""
-    fitter = {"two_wire": fit_two_wire, "bouc_wen": fit_bouc_wen}[family]
+def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: Workers) -> Pending:
+    """A held-current family's fit (two_wire or bouc_wen) on the identification record, begun in the pool's
+    processes; its result is the fit, or raises the InputError that says why the record cannot identify it."""
+    if family == "bouc_wen":
+        return pool.submit(fit_bouc_wen, ident.t, ident.input, ident.output, output_unit)
     try:
-        found = fitter(ident.t, ident.input, ident.output, output_unit=output_unit)
+        fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool)
+    except InputError as error:
+        return Pending(partial(_raise, error))
+    return Pending(fitting.result)
+
+
+def _raise(error: Exception) -> None:
+    raise error
+
+
+def held_current_row(family: str, fitting: Pending, record: Series | None, scored_from: int
+                     ) -> tuple[FamilyRow, TwoWireFit | BoucWenFit | None]:
+    """A held-current family's row: its fit (start_held_current_fit) scored on the validation record (`record`,
+    from its sample scored_from: a separate record run from rest, or the whole record whose tail is held out)."""
+    try:
+        found = fitting.result()
     except InputError as error:
         return FamilyRow(family, family.replace("_", "-"), not_fitted=str(error)), None
     validation = None

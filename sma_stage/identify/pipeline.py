@@ -13,13 +13,15 @@ import numpy as np
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
-from sma_stage.identify.diagnosis import Diagnosis, diagnose, one_blas_thread
+from sma_stage.identify.diagnosis import Diagnosis, Pending, Workers, diagnose, one_blas_thread
 from sma_stage.identify.families import (
+    HELD_CURRENT_FAMILIES,
     FamilyRow,
     check_families,
     choose,
     fit_free_weights_row,
-    fit_held_current_row,
+    held_current_row,
+    start_held_current_fit,
 )
 from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, information_criterion, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
@@ -62,7 +64,8 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     on the tail), or none. With diagnose_rounds > 0 (and validation data) the residual is diagnosed and
     the model deployed is the GPI with every effect it added; should the diagnosis fail, the plain fit is
     deployed and `warnings` says why in one line. The model's state is where it leaves the record, run from
-    the start the diagnosis found for it (from rest without a diagnosis). workers: diagnose's.
+    the start the diagnosis found for it (from rest without a diagnosis). workers: processes that fit the
+    diagnosis's candidates and, meanwhile, the held-current families (the result is the same for any count).
 
     families (sma_stage.identify.families.FAMILIES): with validation data and more than the GPI named, each
     family is fitted on the same record and the one chosen by held-out error and BIC is deployed; the report's
@@ -76,10 +79,22 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     """
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
+    families = check_families(families)
+    with Workers(workers) as pool:
+        return _identify(record, validation, holdout_fraction, operators, diagnose_rounds, output_unit, progress,
+                         source, families, max_fit_samples, pool)
+
+
+def _identify(record: Series, validation: Series | None, holdout_fraction: float | None, operators: int | None,
+              diagnose_rounds: int, output_unit: str, progress: Progress, source: str, families: tuple[str, ...],
+              max_fit_samples: int | None, pool: Workers) -> Identification:
     full_record, full_validation = record, validation
     block = _thinning_block(len(record), FIT_SAMPLES if max_fit_samples is None else max_fit_samples)
     record, validation = record.thinned(block), validation.thinned(block) if validation is not None else None
     ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
+    compared = families != ("gpi",) and valid is not None and float(np.ptp(valid.output[scored_from:])) > 0.0
+    held = {family: start_held_current_fit(family, ident, output_unit, pool)
+            for family in HELD_CURRENT_FAMILIES if compared and family in families}  # beside the GPI's fit
     with one_blas_thread():
         fit = fit_gpi(ident.input, ident.output, operators=operators, output_unit=output_unit, progress=progress)
     errors = _validation_errors(fit, valid, scored_from)
@@ -90,7 +105,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
         try:
             found = diagnose(ident, valid, base=fit, operators=operators, max_rounds=diagnose_rounds,
                              scored_from=scored_from, output_unit=fit.parameters.output_unit, progress=progress,
-                             workers=workers)
+                             pool=pool)
         except Exception as error:  # noqa: BLE001 -- the fit stands whatever the diagnosis meets
             warnings.append(f"diagnosis failed, the plain GPI fit is kept: {type(error).__name__}: "
                             f"{' '.join(str(error).split())}")
@@ -101,11 +116,9 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     metadata = {"source": source or record.source, "samples": len(continued)}
     gpi_model = replace(model, state=end_state, metadata=metadata)
     model = gpi_model
-    families = check_families(families)
     chosen = None
-    if errors is not None and families != ("gpi",):
-        chosen = _compare_families(families, fit, found, errors, ident, valid, scored_from, output_unit, report,
-                                   progress)
+    if errors is not None and compared:
+        chosen = _compare_families(families, fit, found, errors, ident, valid, scored_from, held, report, progress)
         if chosen is not None:
             carried = chosen.start_state(continued.t, continued.input, start) if isinstance(chosen, IdentifiedModel) \
                 else None
@@ -182,10 +195,10 @@ def deployed_held_out(report: dict) -> dict | None:
 
 
 def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics,
-                      ident: Series, valid: Series, scored_from: int, output_unit: str, report: dict,
+                      ident: Series, valid: Series, scored_from: int, held: dict[str, Pending], report: dict,
                       progress: Progress) -> AnyModel | None:
-    """Fit the other families and fill report["families"]; the chosen family's model (without state) when it is
-    not the GPI, else None."""
+    """Fit the free-weight GPI, take the held-current families' fits (begun with `held`) and fill
+    report["families"]; the chosen family's model (without state) when it is not the GPI, else None."""
     gpi = _gpi_row(fit, found, errors, ident)
     rows, models = [], []
     if "gpi" in families:
@@ -200,13 +213,12 @@ def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosi
                                          valid_start)
         rows.append(row)
         models.append(free)
-    for family in ("two_wire", "bouc_wen"):
-        if family in families:
-            if progress is not None:
-                progress(f"fitting the {family.replace('_', '-')} model")
-            row, held = fit_held_current_row(family, ident, valid, scored_from, output_unit)
-            rows.append(row)
-            models.append(held.model.without_state() if held is not None else None)
+    for family, fitting in held.items():
+        if progress is not None:
+            progress(f"the {family.replace('_', '-')} model's fit")
+        row, found_family = held_current_row(family, fitting, valid, scored_from)
+        rows.append(row)
+        models.append(found_family.model.without_state() if found_family is not None else None)
     chosen = choose(rows)
     if chosen is not None:
         rows[chosen] = replace(rows[chosen], chosen=True)

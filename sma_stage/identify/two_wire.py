@@ -18,6 +18,7 @@ from scipy.optimize import least_squares
 
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import check_cancelled
+from sma_stage.identify.diagnosis import Workers
 from sma_stage.identify.fit import check_data, information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.identified import _record
@@ -31,6 +32,8 @@ SEARCH_SAMPLES = 2500  # the starts run on a copy thinned to about this many sam
 POLISH_SAMPLES = 10_000  # the best starts are polished on a copy thinned to at most this many
 SEARCH_EVALUATIONS = 1500
 POLISH_EVALUATIONS = 1500
+DEFAULT_TOLERANCE = 1e-8  # scipy's: the polish, and the search when nothing is polished after it
+SEARCH_TOLERANCE = 1e-4  # the search only ranks the starts; the leaders' polish converges
 MIN_HEATED_SAMPLES = 10  # each wire must be heated in at least this many samples
 TAU_RANGE_S = (0.05, 500.0)
 
@@ -52,44 +55,73 @@ class TwoWireFit:
 
 def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
-                 output_unit: str = "m", shapes: str = "shared") -> TwoWireFit:
+                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None) -> TwoWireFit:
     """The two-wire model that best predicts y [output unit] from u [A] at times t [s], the record starting
-    from a stage at rest. InputError (one line) when the record cannot identify it."""
-    started = time.perf_counter()
-    t, u = _record(t, u)
-    u, y = check_data(u, y)
-    for name, count in (("wire_operators", wire_operators), ("output_operators", output_operators),
-                        ("starts", starts)):
-        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 1 <= count <= 50:
-            raise InputError(f"{name} must be an integer from 1 to 50, got {count!r}")
-    for wire, heated in (("a (u > 0)", u > 0.0), ("b (u < 0)", u < 0.0)):
-        if np.count_nonzero(heated) < MIN_HEATED_SAMPLES:
-            raise InputError(f"the two-wire model needs both wires heated: wire {wire} is heated in "
-                             f"{np.count_nonzero(heated)} samples (at least {MIN_HEATED_SAMPLES})")
-    fine = -(-t.size // POLISH_SAMPLES)
-    problem = _Problem(t[::fine], u[::fine], y[::fine], wire_operators, output_operators, shapes)
-    thin = max(1, t.size // SEARCH_SAMPLES)
-    search = _Problem(t[::thin], u[::thin], y[::thin], wire_operators, output_operators, shapes) if thin > 1 \
-        else problem
-    rng = np.random.default_rng(seed)
-    searched = []
-    for _ in range(starts):
-        check_cancelled()
-        searched.append(search.solve(search.random_start(rng), SEARCH_EVALUATIONS))
-    evaluations = sum(found.nfev for found in searched)
-    best = min(searched, key=lambda found: found.cost)
-    if thin > fine:  # the leaders polished on more samples: the search's thinned cost can rank them wrongly
-        polished = [problem.solve(found.x, POLISH_EVALUATIONS)
-                    for found in sorted(searched, key=lambda found: found.cost)[:POLISHED]]
-        evaluations += sum(found.nfev for found in polished)
-        best = min(polished, key=lambda found: found.cost)
-    model = TwoWireModel(problem.parameters(best.x), output_unit)
-    predicted, end = model.run(t, u)
-    cost = float(np.sum((predicted - y) ** 2))
-    count = problem.tie.shape[1]
-    model = TwoWireModel(model.parameters, output_unit, end, {"identified_samples": int(t.size), "shapes": shapes})
-    return TwoWireFit(model, predicted, error_metrics(y, predicted), cost, information_criterion(cost, t.size, count),
-                      evaluations, time.perf_counter() - started, count)
+    from a stage at rest. InputError (one line) when the record cannot identify it. pool: its processes search
+    the starts and polish the leaders at once (the result is the same without)."""
+    return TwoWireFitting(t, u, y, wire_operators, output_operators, starts, seed, output_unit, shapes,
+                          pool).result()
+
+
+class TwoWireFitting:
+    """A two-wire fit under way (fit_two_wire's arguments): the record checked and the starts submitted to the
+    pool's processes when it is made, so that other work goes on meanwhile; `result()` waits for them,
+    polishes the leaders and gives the TwoWireFit."""
+
+    def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
+                 output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
+                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None) -> None:
+        self.started = time.perf_counter()
+        t, u = _record(t, u)
+        u, y = check_data(u, y)
+        for name, count in (("wire_operators", wire_operators), ("output_operators", output_operators),
+                            ("starts", starts)):
+            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 1 <= count <= 50:
+                raise InputError(f"{name} must be an integer from 1 to 50, got {count!r}")
+        for wire, heated in (("a (u > 0)", u > 0.0), ("b (u < 0)", u < 0.0)):
+            if np.count_nonzero(heated) < MIN_HEATED_SAMPLES:
+                raise InputError(f"the two-wire model needs both wires heated: wire {wire} is heated in "
+                                 f"{np.count_nonzero(heated)} samples (at least {MIN_HEATED_SAMPLES})")
+        self.t, self.u, self.y, self.output_unit, self.shapes = t, u, y, output_unit, shapes
+        self.pool = pool or Workers()
+        fine = -(-t.size // POLISH_SAMPLES)
+        self.problem = _Problem(t[::fine], u[::fine], y[::fine], wire_operators, output_operators, shapes)
+        self.thin = max(1, t.size // SEARCH_SAMPLES)
+        self.polish = self.thin > fine  # the leaders polished on more samples: the thinned cost can rank them wrongly
+        search = _Problem(t[::self.thin], u[::self.thin], y[::self.thin], wire_operators, output_operators,
+                          shapes) if self.polish else self.problem
+        rng = np.random.default_rng(seed)
+        self.searching = [self.pool.submit(_solve, search, search.random_start(rng), SEARCH_EVALUATIONS,
+                                           SEARCH_TOLERANCE if self.polish else DEFAULT_TOLERANCE)
+                          for _ in range(starts)]
+
+    def result(self) -> TwoWireFit:
+        """The fitted model (waits for the starts, then polishes the best POLISHED of them on more samples)."""
+        searched = [pending.result() for pending in self.searching]
+        evaluations = sum(found.nfev for found in searched)
+        best = min(searched, key=lambda found: found.cost)
+        if self.polish:
+            leaders = sorted(searched, key=lambda found: found.cost)[:POLISHED]
+            polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
+                         for found in leaders]
+            polished = [pending.result() for pending in polishing]
+            evaluations += sum(found.nfev for found in polished)
+            best = min(polished, key=lambda found: found.cost)
+        problem, t, u, y = self.problem, self.t, self.u, self.y
+        model = TwoWireModel(problem.parameters(best.x), self.output_unit)
+        predicted, end = model.run(t, u)
+        cost = float(np.sum((predicted - y) ** 2))
+        count = problem.tie.shape[1]
+        model = TwoWireModel(model.parameters, self.output_unit, end,
+                             {"identified_samples": int(t.size), "shapes": self.shapes})
+        return TwoWireFit(model, predicted, error_metrics(y, predicted), cost,
+                          information_criterion(cost, t.size, count), evaluations,
+                          time.perf_counter() - self.started, count)
+
+
+def _solve(problem: _Problem, start: np.ndarray, evaluations: int, tolerance: float) -> object:
+    """One least-squares run of the problem from a start (a job of the pool's processes)."""
+    return problem.solve(start, evaluations, tolerance)
 
 
 SHAPES = ("per_wire", "shared")  # each wire its own transformation shape, or one shape for both
@@ -167,6 +199,8 @@ class _Problem:
         check_cancelled()
         return (TwoWireModel(self.parameters(free)).predict(self.t, self.u) - self.y) / self.span
 
-    def solve(self, start: np.ndarray, evaluations: int) -> object:
+    def solve(self, start: np.ndarray, evaluations: int, tolerance: float = 1e-8) -> object:
+        """scipy's least_squares from start, stopped after `evaluations` or when the cost and the step change by
+        less than `tolerance` (relative)."""
         return least_squares(self.residuals, start, bounds=(self.low, self.high), x_scale="jac",
-                             max_nfev=evaluations)
+                             max_nfev=evaluations, ftol=tolerance, xtol=tolerance)
