@@ -262,11 +262,15 @@ def main() -> None:
         alternatives(args.variants.split(","), args.seed)
         return
     from sma_stage.cli import main as gpi_tool
+    from sma_stage.identify.metrics import error_metrics
+    from sma_stage.model.identified import load_any_model_file
 
-    print("| variant | span [mm] | model | identification RMS % | validation RMS % | validation max % | |")
-    print("|---|---|---|---|---|---|---|")
+    print("| variant | span [mm] | model | identification RMS % | validation RMS % | validation max % | | third record "
+          "RMS / max % |")
+    print("|---|---|---|---|---|---|---|---|")
     for name in args.variants.split(","):
         made = records(VARIANTS[name], args.seed)
+        t_third, u_third, y_third = third_record(VARIANTS[name], args.seed)
         with tempfile.TemporaryDirectory() as folder:
             paths = {}
             for kind, (t, u, y) in made.items():
@@ -284,16 +288,29 @@ def main() -> None:
                           "--families", args.families, "--json"])
             report = json.loads(out.getvalue())
             seconds = time.perf_counter() - started
+            chosen = load_any_model_file(Path(folder) / "out" / "model.yaml").without_state()
+            third = error_metrics(y_third, chosen.predict(t_third, u_third))
         span = 1e3 * float(np.ptp(made["identification"][2]))
         for row in report["families"]:
             valid = row["validation"]
             if valid is None:
                 print(f"| {name} | {span:.3f} | {row['model']}: not fitted ({row['not_fitted']}) | | | | |", flush=True)
                 continue
+            third_cell = f"{third.rms_pct:.2f} / {third.max_pct:.1f}" if row["chosen"] else ""
             print(f"| {name} | {span:.3f} | {row['model']} | {row['identification']['rms_pct']:.2f} | "
-                  f"{valid['rms_pct']:.2f} | {valid['max_pct']:.1f} | {'chosen' if row['chosen'] else ''} |",
-                  flush=True)
-        print(f"| {name} | | (diagnose, families {args.families}) | | | | {seconds:.0f} s |", flush=True)
+                  f"{valid['rms_pct']:.2f} | {valid['max_pct']:.1f} | {'chosen' if row['chosen'] else ''} | "
+                  f"{third_cell} |", flush=True)
+        print(f"| {name} | | (diagnose, families {args.families}) | | | | {seconds:.0f} s | |", flush=True)
+
+
+def third_record(stage: Stage, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A record no identification choice sees: the designed excitation (another draw) on the stage, 1000 s at
+    0.2 s (t [s], current [A], position [m]); `--alternatives`' second validation record."""
+    from sma_stage.signals import designed_identification_signal
+
+    t = np.arange(0.0, 1000.0, SAMPLE_PERIOD_S)
+    current = designed_identification_signal(t, seed=7)
+    return t, current, simulate(current, stage, seed + 9)
 
 
 def alternatives(variants: list[str], seed: int) -> None:
@@ -312,9 +329,8 @@ def alternatives(variants: list[str], seed: int) -> None:
         made = records(stage, seed)
         t = made["identification"][0]
         designed = designed_identification_signal(t)
-        other = designed_identification_signal(t, seed=7)
         identified_on = {"paper": made["identification"], "designed": (t, designed, simulate(designed, stage, seed + 5))}
-        second = (t, other, simulate(other, stage, seed + 9))
+        second = third_record(stage, seed)
         for record, (t_i, u_i, y_i) in identified_on.items():
             for shapes in ("shared", "per_wire"):
                 found = fit_two_wire(t_i, u_i, y_i, shapes=shapes)

@@ -18,7 +18,7 @@ from sma_stage.identify.diagnosis import Pending, Workers
 from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.free_weights import fit_free_weights
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
-from sma_stage.identify.two_wire import TwoWireFit, TwoWireFitting
+from sma_stage.identify.two_wire import HeldOut, TwoWireFit, TwoWireFitting
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
 
@@ -59,16 +59,18 @@ def check_families(names: Sequence[str]) -> tuple[str, ...]:
     return tuple(name for name in FAMILIES if name in names)
 
 
-def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: Workers) -> Pending:
+def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: Workers,
+                           held_out: HeldOut | None = None) -> Pending:
     """A held-current family's fit (two_wire or bouc_wen) on the identification record, begun in the pool's
-    processes; its result is the fit, or raises the InputError that says why the record cannot identify it."""
+    processes; its result is the fit, or raises the InputError that says why the record cannot identify it.
+    held_out: the validation record the two-wire fit tells its closest starts apart on (fit_two_wire)."""
     if family == "bouc_wen":
         return pool.submit(fit_bouc_wen, ident.t, ident.input, ident.output, output_unit)
     try:
         fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool)
     except InputError as error:
         return Pending(partial(_raise, error))
-    return Pending(fitting.result)
+    return Pending(partial(fitting.result, held_out))
 
 
 def _raise(error: Exception) -> None:
@@ -90,7 +92,7 @@ def held_current_row(family: str, fitting: Pending, record: Series | None, score
     if family == "two_wire":
         params = found.model.parameters
         description = (f"two-wire, {params.wire_operators} operators per wire, {params.output_operators} output "
-                       "operators")
+                       "operators" + (f", the start of {found.admitted} that predicts best" if found.admitted > 1 else ""))
     else:
         description = f"Bouc-Wen through a heating lag of {found.model.tau_s:.3g} s"
     return FamilyRow(family, description, found.parameter_count, found.errors, validation, found.bic), found

@@ -26,6 +26,7 @@ from sma_stage.identify.families import (
 from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, information_criterion, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
+from sma_stage.identify.two_wire import HeldOut
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
 
@@ -93,7 +94,8 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
     record, validation = record.thinned(block), validation.thinned(block) if validation is not None else None
     ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
     compared = families != ("gpi",) and valid is not None and float(np.ptp(valid.output[scored_from:])) > 0.0
-    held = {family: start_held_current_fit(family, ident, output_unit, pool)
+    held_out = HeldOut(valid.t, valid.input, valid.output, scored_from) if compared else None
+    held = {family: start_held_current_fit(family, ident, output_unit, pool, held_out)
             for family in HELD_CURRENT_FAMILIES if compared and family in families}  # beside the GPI's fit
     with one_blas_thread():
         fit = fit_gpi(ident.input, ident.output, operators=operators, output_unit=output_unit, progress=progress)

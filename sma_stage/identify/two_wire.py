@@ -18,7 +18,7 @@ from scipy.optimize import least_squares
 
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import check_cancelled
-from sma_stage.identify.diagnosis import Workers
+from sma_stage.identify.diagnosis import COUNT_FIT_MARGIN, Workers
 from sma_stage.identify.fit import check_data, information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.identified import _record
@@ -27,13 +27,15 @@ from sma_stage.model.two_wire import SCALARS, TwoWireModel, TwoWireParameters
 WIRE_OPERATORS = 4
 OUTPUT_OPERATORS = 5
 STARTS = 6
-POLISHED = 2  # the best starts polished on the whole record
+POLISHED = 2  # the best starts polished on more samples (with a held-out record, the best fit and this many more)
 SEARCH_SAMPLES = 2500  # the starts run on a copy thinned to about this many samples
 POLISH_SAMPLES = 10_000  # the best starts are polished on a copy thinned to at most this many
 SEARCH_EVALUATIONS = 1500
 POLISH_EVALUATIONS = 1500
 DEFAULT_TOLERANCE = 1e-8  # scipy's: the polish, and the search when nothing is polished after it
 SEARCH_TOLERANCE = 1e-4  # the search only ranks the starts; the leaders' polish converges
+START_FIT_MARGIN = COUNT_FIT_MARGIN  # with a held-out record: starts whose RMS error on the record is within this
+# (relative) of the best are told apart there, as the GPI's operator counts are (the record does not tell them apart)
 MIN_HEATED_SAMPLES = 10  # each wire must be heated in at least this many samples
 TAU_RANGE_S = (0.05, 500.0)
 
@@ -51,16 +53,35 @@ class TwoWireFit:
     evaluations: int
     seconds: float
     parameter_count: int  # free parameters fitted (shared shapes count once)
+    admitted: int = 0  # starts that fitted within START_FIT_MARGIN of the best, the held-out error chose among (0: none)
 
 
 def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
-                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None) -> TwoWireFit:
+                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None,
+                 held_out: HeldOut | None = None) -> TwoWireFit:
     """The two-wire model that best predicts y [output unit] from u [A] at times t [s], the record starting
     from a stage at rest. InputError (one line) when the record cannot identify it. pool: its processes search
-    the starts and polish the leaders at once (the result is the same without)."""
+    the starts and polish the leaders at once (the result is the same without). held_out: a record the starts
+    that fit within START_FIT_MARGIN of the best are told apart on (the lowest RMS error there is polished)."""
     return TwoWireFitting(t, u, y, wire_operators, output_operators, starts, seed, output_unit, shapes,
-                          pool).result()
+                          pool).result(held_out)
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """A record to choose between fits on: times [s], input [A], output [output unit], run from a stage at rest,
+    its errors counted from sample `scored_from`."""
+
+    t: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    scored_from: int = 0
+
+    def rms(self, model: TwoWireModel) -> float:
+        """The model's RMS error on the scored samples [output unit]."""
+        predicted = model.predict(self.t, self.u)[self.scored_from:]
+        return float(np.sqrt(np.mean((predicted - self.y[self.scored_from:]) ** 2)))
 
 
 class TwoWireFitting:
@@ -90,23 +111,31 @@ class TwoWireFitting:
         self.polish = self.thin > fine  # the leaders polished on more samples: the thinned cost can rank them wrongly
         search = _Problem(t[::self.thin], u[::self.thin], y[::self.thin], wire_operators, output_operators,
                           shapes) if self.polish else self.problem
+        self.search = search
         rng = np.random.default_rng(seed)
         self.searching = [self.pool.submit(_solve, search, search.random_start(rng), SEARCH_EVALUATIONS,
                                            SEARCH_TOLERANCE if self.polish else DEFAULT_TOLERANCE)
                           for _ in range(starts)]
 
-    def result(self) -> TwoWireFit:
-        """The fitted model (waits for the starts, then polishes the best POLISHED of them on more samples)."""
-        searched = [pending.result() for pending in self.searching]
+    def result(self, held_out: HeldOut | None = None) -> TwoWireFit:
+        """The fitted model: waits for the starts, then polishes the POLISHED best fits on more samples and keeps the
+        best. With held_out: the best fit and the POLISHED other starts within START_FIT_MARGIN of it that predict
+        held_out best are polished, and of those still within the margin, the one that predicts it best is kept."""
+        searched = sorted((pending.result() for pending in self.searching), key=lambda found: found.cost)
         evaluations = sum(found.nfev for found in searched)
-        best = min(searched, key=lambda found: found.cost)
+        admitted = _admitted(searched) if held_out is not None else []
+        leaders = searched[:POLISHED]
+        if held_out is not None:
+            leaders = searched[:1] + sorted(admitted[1:], key=lambda found: held_out.rms(self._model(self.search,
+                                                                                                    found)))[:POLISHED]
         if self.polish:
-            leaders = sorted(searched, key=lambda found: found.cost)[:POLISHED]
             polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
                          for found in leaders]
-            polished = [pending.result() for pending in polishing]
-            evaluations += sum(found.nfev for found in polished)
-            best = min(polished, key=lambda found: found.cost)
+            leaders = sorted((pending.result() for pending in polishing), key=lambda found: found.cost)
+            evaluations += sum(found.nfev for found in leaders)
+        best = leaders[0]
+        if held_out is not None:
+            best = min(_admitted(leaders), key=lambda found: held_out.rms(self._model(self.problem, found)))
         problem, t, u, y = self.problem, self.t, self.u, self.y
         model = TwoWireModel(problem.parameters(best.x), self.output_unit)
         predicted, end = model.run(t, u)
@@ -116,7 +145,18 @@ class TwoWireFitting:
                              {"identified_samples": int(t.size), "shapes": self.shapes})
         return TwoWireFit(model, predicted, error_metrics(y, predicted), cost,
                           information_criterion(cost, t.size, count), evaluations,
-                          time.perf_counter() - self.started, count)
+                          time.perf_counter() - self.started, count, len(admitted))
+
+
+    @staticmethod
+    def _model(problem: _Problem, found: object) -> TwoWireModel:
+        """The model of a least-squares result of the problem."""
+        return TwoWireModel(problem.parameters(found.x))
+
+
+def _admitted(ranked: list) -> list:
+    """The least-squares results (ranked by cost) whose RMS error is within START_FIT_MARGIN of the first's."""
+    return [found for found in ranked if found.cost <= ranked[0].cost * (1.0 + START_FIT_MARGIN) ** 2]
 
 
 def _solve(problem: _Problem, start: np.ndarray, evaluations: int, tolerance: float) -> object:
