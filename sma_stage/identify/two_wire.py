@@ -11,6 +11,7 @@ physical stage's four variants shared shapes had the lower BIC in most fits and 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,7 +64,7 @@ def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: in
     """The two-wire model that best predicts y [output unit] from u [A] at times t [s], the record starting
     from a stage at rest. InputError (one line) when the record cannot identify it. pool: its processes search
     the starts and polish the leaders at once (the result is the same without). held_out: a record the starts
-    that fit within START_FIT_MARGIN of the best are told apart on (the lowest RMS error there is polished)."""
+    that fit within START_FIT_MARGIN of the best are told apart on (TwoWireFitting.result)."""
     return TwoWireFitting(t, u, y, wire_operators, output_operators, starts, seed, output_unit, shapes,
                           pool).result(held_out)
 
@@ -78,10 +79,9 @@ class HeldOut:
     y: np.ndarray
     scored_from: int = 0
 
-    def rms(self, model: TwoWireModel) -> float:
-        """The model's RMS error on the scored samples [output unit]."""
-        predicted = model.predict(self.t, self.u)[self.scored_from:]
-        return float(np.sqrt(np.mean((predicted - self.y[self.scored_from:]) ** 2)))
+    def rms_pct(self, model: TwoWireModel) -> float:
+        """The model's RMS error on the scored samples [% of their span]."""
+        return error_metrics(self.y[self.scored_from:], model.predict(self.t, self.u)[self.scored_from:]).rms_pct
 
 
 class TwoWireFitting:
@@ -125,9 +125,12 @@ class TwoWireFitting:
         evaluations = sum(found.nfev for found in searched)
         admitted = _admitted(searched) if held_out is not None else []
         leaders = searched[:POLISHED]
+
+        def held_out_error(problem: _Problem) -> Callable[[object], float]:
+            return lambda found: held_out.rms_pct(TwoWireModel(problem.parameters(found.x)))
+
         if held_out is not None:
-            leaders = searched[:1] + sorted(admitted[1:], key=lambda found: held_out.rms(self._model(self.search,
-                                                                                                    found)))[:POLISHED]
+            leaders = searched[:1] + sorted(admitted[1:], key=held_out_error(self.search))[:POLISHED]
         if self.polish:
             polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
                          for found in leaders]
@@ -135,7 +138,7 @@ class TwoWireFitting:
             evaluations += sum(found.nfev for found in leaders)
         best = leaders[0]
         if held_out is not None:
-            best = min(_admitted(leaders), key=lambda found: held_out.rms(self._model(self.problem, found)))
+            best = min(_admitted(leaders), key=held_out_error(self.problem))
         problem, t, u, y = self.problem, self.t, self.u, self.y
         model = TwoWireModel(problem.parameters(best.x), self.output_unit)
         predicted, end = model.run(t, u)
@@ -146,12 +149,6 @@ class TwoWireFitting:
         return TwoWireFit(model, predicted, error_metrics(y, predicted), cost,
                           information_criterion(cost, t.size, count), evaluations,
                           time.perf_counter() - self.started, count, len(admitted))
-
-
-    @staticmethod
-    def _model(problem: _Problem, found: object) -> TwoWireModel:
-        """The model of a least-squares result of the problem."""
-        return TwoWireModel(problem.parameters(found.x))
 
 
 def _admitted(ranked: list) -> list:
