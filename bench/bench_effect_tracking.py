@@ -4,7 +4,7 @@ than the plain GPI, once the compensator runs it?
 Per effect, test/synthetic.py (a GPI plant written independently of the package, simulated 10x finer
 than it is sampled, 2 um noise) makes the identification record (the paper's decaying sine, 1000 s at
 1 Hz) and the validation record (the paper's two cosines). `gpi_tool diagnose IDENT --validate VALID
---out DIR` identifies; sma_stage.control.Compensator loads DIR/model.yaml (the identified model, with the
+--families gpi --out DIR` identifies (the GPI's diagnosis, whose effects are measured here); sma_stage.control.Compensator loads DIR/model.yaml (the identified model, with the
 state the identification record left) and, for comparison, the plain GPI of DIR/report.json (run over the
 identification record for its state too). Each then commands the same plant, continuing from the end of
 the identification record, feedforward every second for 1000 s: a setpoint at the bottom of 80 % of the
@@ -55,7 +55,8 @@ def diagnose_with_gpi_tool(case: synthetic.Case, folder: Path) -> tuple[Identifi
         paths.append(str(path))
     out = folder / "diagnosis"
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        status = gpi_tool(["diagnose", paths[0], "--validate", paths[1], "--out", str(out), "--json"])
+        status = gpi_tool(["diagnose", paths[0], "--validate", paths[1], "--families", "gpi", "--out", str(out),
+                           "--json"])
     if status != 0:
         raise SystemExit(f"gpi_tool diagnose failed with status {status}")
     report = json.loads((out / "report.json").read_text())

@@ -18,10 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from sma_stage.cli import family_list
 from sma_stage.commands.paper import evaluate_paper
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import error_metrics
-from sma_stage.model import IdentifiedModel, forward, inverse, load_model_file
+from sma_stage.model import forward, inverse, load_model_file
+from sma_stage.model.identified import any_model_from_yaml_text
 from sma_stage.nodes.launch import CONFIG_DIR, DEFAULT_MODEL_FILE
 from sma_stage.plots import Panel, save_panels
 from sma_stage.signals import paper_validation_signal
@@ -67,6 +69,7 @@ class EndToEndSettings:
     excite_duration_s: float = 1000.0  # the paper's identification signal
     excite_period_s: float = 250.0
     operators: int = 10
+    families: tuple[str, ...] = ("gpi",)  # model families the refit compares (the node's `families`)
     run_s: float = 1000.0              # the paper's validation signal
     settle_s: float = 60.0             # before each run: at the bottom of the range, then at the first setpoint
     stroke_fraction: float = 0.8       # the setpoint spans this fraction of the measured stroke
@@ -272,7 +275,7 @@ def node_parameters(settings: EndToEndSettings, work_dir: Path) -> dict[str, dic
                                 "excite_period": settings.excite_period_s,
                                 "excite_rate_hz": settings.control_rate_hz,
                                 "record_bag": str(work_dir / "session_bag"), "bag_overwrite": True,
-                                "diagnose_workers": 2},
+                                "diagnose_workers": 2, "families": list(settings.families)},
     }
 
 
@@ -334,11 +337,17 @@ def describe_diagnosis(report: dict) -> str:
         return "no diagnosis (diagnose_rounds 0): the plain GPI went to the compensator"
     before, after = diagnosis["before"]["validation"]["rms_pct"], diagnosis["after"]["validation"]["rms_pct"]
     named = ", ".join(diagnosis["effects"]) or "none"
+    line = f"diagnosis of the residual: {named}; held-out tail rms {before:.2f} % -> {after:.2f} %; "
+    families = report.get("families") or []
+    chosen = next((row for row in families if row["chosen"]), None)
+    if chosen is not None and chosen["family"] != "gpi":
+        scores = ", ".join(f"{row['family']} {row['validation']['rms_pct']:.2f} %" for row in families
+                           if row["validation"])
+        return line + f"families on the held-out tail: {scores}; the {chosen['model']} went to the compensator"
     effects = report["identified_model"]["effects"]
     sent = ("the GPI with " + ", ".join(f"{effect['kind']} ({', '.join(f'{k} {v:.4g}' for k, v in effect['parameters'].items())})"
                                         for effect in effects) if effects else "the plain GPI")
-    return (f"diagnosis of the residual: {named}; held-out tail rms {before:.2f} % -> {after:.2f} %; "
-            f"{sent} went to the compensator")
+    return line + f"{sent} went to the compensator"
 
 
 RUN_ORDER = ("default, feedforward", "identified, feedforward", "identified, PI loop")
@@ -412,7 +421,7 @@ def run_end_to_end(nodes: object, settings: EndToEndSettings, out_dir: Path, lau
         report, stroke = excite_and_refit(client, session, settings, nodes.check_running)
         refitted = time.monotonic()
         held = client.get_parameters("compensator", ["model"])["model"]
-        pushed = bool(held) and IdentifiedModel.from_yaml_text(held).without_state().to_dict() == report["identified_model"]
+        pushed = bool(held) and any_model_from_yaml_text(held).without_state().to_dict() == report["identified_model"]
         runs = track_with_both_models(client, session, stroke, settings, nodes.check_running,
                                       identified=bool(report["compensator"]["pushed"]))
     exits = nodes.stop_all()
@@ -523,10 +532,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="simulated seconds per wall second in part 3")
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS_DOMAIN_ID for part 3 (default: $ROS_DOMAIN_ID, else derived from the pid)")
+    parser.add_argument("--families", type=family_list, default=EndToEndSettings.families,
+                        help="model families the refit in part 3 compares, comma-separated (default: gpi; all: "
+                             "gpi,gpi_free,two_wire,bouc_wen)")
     args = parser.parse_args(argv)
     began = time.monotonic()
     with ExitStack() as stack:
-        nodes, settings, launched_at = None, EndToEndSettings(time_scale=args.time_scale), time.monotonic()
+        nodes, settings, launched_at = None, EndToEndSettings(time_scale=args.time_scale, families=args.families), time.monotonic()
         if not args.no_nodes:
             from sma_stage.nodes.launch import NodeProcesses
 

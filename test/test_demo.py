@@ -43,3 +43,24 @@ def test_the_demo_picture_shows_the_identified_loop_from_the_session_bag(tmp_pat
     assert [name for name, _ in output.curves] == ["measured", "model, from rest"]
     save_tracking_plots(tmp_path / "tracking.png", [], panels)
     assert (tmp_path / "tracking.png").stat().st_size > 10_000
+
+
+def test_the_demo_says_which_family_the_refit_deployed_and_passes_its_families_to_the_node(tmp_path):
+    """`--families` reaches the identification node's `families`; with a two-wire model chosen the demo's line
+    names it and every family's held-out RMS (it printed the GPI's effects and failed on a two-wire report)."""
+    from sma_stage.demo import EndToEndSettings, describe_diagnosis, node_parameters
+
+    settings = EndToEndSettings(families=("gpi", "two_wire"))
+    assert node_parameters(settings, tmp_path)["identification_node"]["families"] == ["gpi", "two_wire"]
+    rows = [{"family": "gpi", "model": "GPI, 10 operators, thermal_lag", "validation": {"rms_pct": 1.9},
+             "chosen": False},
+            {"family": "two_wire", "model": "two-wire, 4 operators per wire", "validation": {"rms_pct": 1.5},
+             "chosen": True}]
+    diagnosis = {"before": {"validation": {"rms_pct": 8.5}}, "after": {"validation": {"rms_pct": 1.9}},
+                 "effects": ["thermal_lag"]}
+    line = describe_diagnosis({"diagnosis": diagnosis, "families": rows,
+                               "identified_model": {"kind": "two_wire", "parameters": {}}})
+    assert "gpi 1.90 %, two_wire 1.50 %" in line and line.endswith("two-wire, 4 operators per wire went to the "
+                                                                   "compensator")
+    gpi = {"diagnosis": diagnosis, "identified_model": {"effects": []}}
+    assert describe_diagnosis(gpi).endswith("the plain GPI went to the compensator")
