@@ -972,7 +972,7 @@ class FakeStage:
         wait_until(lambda: identification.count_publishers("joint_states") >= 1
                    and identification.count_publishers("current_applied") >= 1, 5.0, "discovery")
 
-    def publish(self, currents, positions=None, commands=True, states=True) -> None:
+    def publish(self, currents, positions=None, commands=True, states=True, period_s: float = 0.002) -> None:
         positions = np.tanh(np.asarray(currents) / 3.0) * 1e-4 if positions is None else positions
         for current, position in zip(currents, positions, strict=True):
             if commands:
@@ -981,7 +981,7 @@ class FakeStage:
                 message = JointState(name=["stage_x"], position=[float(position)], velocity=[0.0])
                 message.header.stamp = self.node.get_clock().now().to_msg()
                 self.state_pub.publish(message)
-            time.sleep(0.002)
+            time.sleep(period_s)
 
 
 def refit_answer(ros: Ros, probe: Node):
@@ -991,7 +991,10 @@ def refit_answer(ros: Ros, probe: Node):
 def test_the_model_watch_publishes_the_residual_and_flags_a_stage_that_moved(ros):
     """The compensator publishes its model; the identification node runs it on the applied current against
     joint_states: a stage that behaves as the model says stays `ok` (the residual a fraction of a per cent of the
-    span: the one-message misalignment of two topics), a stage 20 % of its span away is flagged `drift`, WARN."""
+    span: the one-message misalignment of two topics), a stage 20 % of its span away is flagged `drift`, WARN.
+    Published at 200 Hz: at 500 Hz on two cores beside two busy processes the node took the two topics several
+    messages apart (the current is timed by its arrival, the position by its stamp), and the residual was
+    1.2-1.4 % of the span in 3 runs of 4."""
     from diagnostic_msgs.msg import DiagnosticStatus
 
     from sma_stage.model import forward
@@ -1009,13 +1012,13 @@ def test_the_model_watch_publishes_the_residual_and_flags_a_stage_that_moved(ros
     currents = 4.0 * np.sin(2 * np.pi * np.arange(3000) / 1000.0)
     positions = forward(currents, DEFAULT_PARAMS, OPERATORS)
     span = float(np.ptp(positions))
-    fake.publish(currents[:2000], positions[:2000])
+    fake.publish(currents[:2000], positions[:2000], period_s=0.005)
     wait_until(lambda: len(residuals.messages) > 1500, 5.0, "the residual on ~/residual")
     values = np.array([message.position[0] for message in residuals.messages])
     assert np.sqrt(np.mean(values**2)) < 0.01 * span and residuals.messages[-1].header.stamp.sec > 0
     wait_until(lambda: any(st.message.startswith("the model in force") for st in watch_statuses()), 5.0, "ok")
     assert watch_statuses()[-1].level == DiagnosticStatus.OK
-    fake.publish(currents[2000:], positions[2000:] + 0.2 * span)
+    fake.publish(currents[2000:], positions[2000:] + 0.2 * span, period_s=0.005)
     wait_until(lambda: identification.watch.state() == "drift", 5.0, "drift")
     wait_until(lambda: watch_statuses()[-1].level == DiagnosticStatus.WARN, 5.0, "WARN on /diagnostics")
     assert {value.key for value in watch_statuses()[-1].values} >= {"state", "residual_rms_m", "drift_statistic",
