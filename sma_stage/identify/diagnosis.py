@@ -433,7 +433,7 @@ class Workers:
             results = []
             for job in jobs:
                 _report(progress, doing.format(_job_name(job)))
-                results.append(function(*job, progress))
+                results.append(_as_in_a_worker(function, *job, progress))
             return results
         executor = self._started()
         _report(progress, doing.format(", ".join(_job_name(job) for job in jobs)) + f" in {self.workers} processes")
@@ -445,7 +445,7 @@ class Workers:
         """function(*args) begun now in a worker process, behind the jobs already waiting; with workers 1, run in
         this process when its result is asked for."""
         if self.workers == 1:
-            return Pending(lambda: function(*args))
+            return Pending(lambda: _as_in_a_worker(function, *args))
         future = self._started().submit(function, *args)
         return Pending(lambda: self._answered(future))
 
@@ -535,6 +535,14 @@ def one_blas_thread() -> threadpool_limits:
 
 
 WORKER_NICENESS = 10  # the workers yield the CPU to a stage or a node on the same computer
+
+
+def _as_in_a_worker(function: Callable[..., object], *args: object) -> object:
+    """function(*args) in this process with BLAS on one thread, as a worker process runs it: with OpenBLAS on
+    two threads a two-wire fit took another path and ended at another model (the result must not depend on
+    the worker count)."""
+    with one_blas_thread():
+        return function(*args)
 
 
 def _worker_setup() -> None:
