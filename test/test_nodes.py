@@ -606,9 +606,10 @@ def test_compensator_says_when_feedback_has_no_measurement_and_is_on_diagnostics
     assert statuses()[-1].level == DiagnosticStatus.OK and statuses()[-1].message == "running", statuses()[-1].message
 
 
-def hold_on_a_fast_wall_clock_stage(ros: Ros, compensator_time_scale: float) -> np.ndarray:
-    """Positions [m] of a simulated stage at time_scale 20 without use_sim_time, the compensator (the shipped
-    model, PI loop, defaults) holding 200 um from rest for 12 s of wall time (240 s of stage time)."""
+def hold_on_a_fast_wall_clock_stage(ros: Ros, compensator_time_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Positions [m] and their stamps [s of wall time] of a simulated stage at time_scale 20 without
+    use_sim_time, the compensator (the shipped model, PI loop, defaults) holding 200 um from rest for 12 s of
+    wall time (240 s of stage time)."""
     stage_node(ros, rate_hz=100.0, time_scale=20.0, command_timeout=2.0)
     compensator = compensator_node(ros, model_file=str(DEFAULT_MODEL_FILE), feedback=True, rate_hz=50.0,
                                    max_current_rate=1.0, measurement_timeout=1.0, time_scale=compensator_time_scale)
@@ -617,15 +618,21 @@ def hold_on_a_fast_wall_clock_stage(ros: Ros, compensator_time_scale: float) -> 
     wait_until(lambda: len(positions.messages) > 10, 5.0, "joint_states")
     probe.setpoint_pub.publish(Float64(data=2e-4))
     time.sleep(12.0)
-    return np.array([message.position[0] for message in positions.messages[-1100:]])
+    kept = positions.messages[-1100:]
+    return (np.array([message.position[0] for message in kept]),
+            np.array([message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec for message in kept]))
 
 
 def test_a_fast_wall_clock_stage_is_held_without_overshoot_or_limit_cycle(ros):
     """Without use_sim_time at time_scale 20, the loop counted wall seconds while the model counts the stage's:
     200 um overshot to 504 um, then cycled between 171 and 225 um. With the compensator's time_scale the loop
-    counts stage seconds: at most 20 % overshoot, and the last 60 s of stage time within 10 um of the setpoint."""
-    positions = hold_on_a_fast_wall_clock_stage(ros, 20.0)
-    settled = positions[-300:]  # the last 3 s of wall time at 100 Hz
+    counts stage seconds: at most 20 % overshoot, and the last 60 s of stage time within 10 um of the setpoint
+    (chosen by their stamps, not as the last 300 messages: the test holds whatever rate the stage kept).
+    It failed once in a fresh-clone CI run (196.4 to 211.7 um: still approaching); beside two CPU-bound
+    processes the stage kept its 100 Hz and the test passed 4 runs of 4."""
+    positions, stamps_s = hold_on_a_fast_wall_clock_stage(ros, 20.0)
+    settled = positions[stamps_s >= stamps_s[-1] - 3.0]  # the last 3 s of wall time
+    assert settled.size >= 100, f"{settled.size} positions in the last 3 s"
     assert positions.max() < 2.4e-4, f"peak {positions.max() * 1e6:.1f} um"
     assert np.max(np.abs(settled - 2e-4)) < 1e-5, f"{settled.min() * 1e6:.1f} to {settled.max() * 1e6:.1f} um"
 
