@@ -22,31 +22,19 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections import deque
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_tracking import (  # noqa: E402
-    CONTROL_STEP_S,
-    MAX_CURRENT_A,
-    PLANT_STEP_S,
-    RUN_S,
-    SETTLE_S,
-    TRACKING_SEED,
-    record,
-    setpoints,
-)
+from bench_tracking import CONTROL_STEP_S, PLANT_STEP_S, Identified, Mode, Model, record, track  # noqa: E402
 
-from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.control.compensator import imc_gains  # noqa: E402
 from sma_stage.control.drives import AnyModel  # noqa: E402
 from sma_stage.identify.pipeline import identify_recording  # noqa: E402
 from sma_stage.identify.two_wire import HeldOut, fit_two_wire  # noqa: E402
 from sma_stage.model.identified import load_any_model_file  # noqa: E402
-from sma_stage.plant import StageSimulator  # noqa: E402
 from sma_stage.signals import IDENTIFICATION_DURATION_S, paper_identification_signal, paper_validation_signal  # noqa: E402
 
 
@@ -68,20 +56,8 @@ def identify_both(model_files: list[str]) -> tuple[dict[str, AnyModel], tuple[fl
 def track_late(model: AnyModel, stroke_m: tuple[float, float], lead_limit: float, delay: int) -> tuple[float, float]:
     """(RMS, max) tracking error [% of the stroke] with the PI loop fed the position `delay` commands late."""
     gains = imc_gains(model, CONTROL_STEP_S, lead_limit)
-    compensator = Compensator(model, MAX_CURRENT_A, kp=gains["kp"], ki=gains["ki"], lead_limit=lead_limit)
-    stage = StageSimulator(seed=TRACKING_SEED)
-    steps = int(round((2.0 * SETTLE_S + RUN_S) / CONTROL_STEP_S))
-    times = CONTROL_STEP_S * np.arange(steps + 1)
-    wanted = setpoints(stroke_m, times)
-    seen = deque([stage.state.measured_position_m] * (delay + 1), maxlen=delay + 1)
-    measured = np.empty(steps)
-    for k in range(steps):
-        current = compensator.command(wanted[k], seen[0], CONTROL_STEP_S)
-        measured[k] = stage.step(current, CONTROL_STEP_S).measured_position_m
-        seen.append(measured[k])
-    on_signal = times[1:] >= 2.0 * SETTLE_S
-    error = 100.0 * (measured - wanted[1:])[on_signal] / np.ptp(stroke_m)
-    return float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error)))
+    mode = Mode(Model("", model, float("nan")), True, gains["kp"], gains["ki"], lead_limit)
+    return track(Identified((), stroke_m, 0.0), mode, CONTROL_STEP_S, delay)[:2]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from sma_stage.control import Compensator
-from sma_stage.control.compensator import imc_gains
+from sma_stage.control.compensator import DEFAULT_LEAD_LIMIT, imc_gains
 from sma_stage.identify.pipeline import identify_recording
 from sma_stage.io import make_series
 from sma_stage.model import IdentifiedModel
@@ -80,6 +81,7 @@ class Mode:
     feedback: bool
     kp: float = 0.0
     ki: float = 0.0
+    lead_limit: float = DEFAULT_LEAD_LIMIT  # the PI loop's lead limit [A/A]
 
     @property
     def name(self) -> str:
@@ -122,24 +124,25 @@ def setpoints(stroke_m: tuple[float, float], t_s: np.ndarray) -> np.ndarray:
 
 def compensator_for(mode: Mode) -> Compensator:
     """The control core for the mode's model and gains."""
-    return Compensator(mode.model.model, MAX_CURRENT_A, kp=mode.kp, ki=mode.ki)
+    return Compensator(mode.model.model, MAX_CURRENT_A, kp=mode.kp, ki=mode.ki, lead_limit=mode.lead_limit)
 
 
-def track(identified: Identified, mode: Mode, control_step_s: float) -> tuple[float, float, float, float]:
+def track(identified: Identified, mode: Mode, control_step_s: float, delay: int = 0
+          ) -> tuple[float, float, float, float]:
     """(RMS, max) tracking error [% of the stroke] over the validation signal, commands every
-    control_step_s [s], and the current's sample-to-sample change over it (RMS, 99th percentile) [% of
-    MAX_CURRENT_A]."""
+    control_step_s [s], the loop given the position measured `delay` commands earlier, and the current's
+    sample-to-sample change over it (RMS, 99th percentile) [% of MAX_CURRENT_A]."""
     compensator = compensator_for(mode)
     stage = StageSimulator(seed=TRACKING_SEED)
     steps = int(round((2.0 * SETTLE_S + RUN_S) / control_step_s))
     times = control_step_s * np.arange(steps + 1)
     wanted = setpoints(identified.stroke_m, times)
     measured, currents = np.empty(steps), np.empty(steps)
-    position = stage.state.measured_position_m
+    seen = deque([stage.state.measured_position_m] * (delay + 1), maxlen=delay + 1)
     for k in range(steps):
-        currents[k] = compensator.command(wanted[k], position if mode.feedback else None, control_step_s)
-        position = stage.step(currents[k], control_step_s).measured_position_m
-        measured[k] = position
+        currents[k] = compensator.command(wanted[k], seen[0] if mode.feedback else None, control_step_s)
+        measured[k] = stage.step(currents[k], control_step_s).measured_position_m
+        seen.append(measured[k])
     on_signal = times[1:] >= 2.0 * SETTLE_S
     error = 100.0 * (measured - wanted[1:])[on_signal] / np.ptp(identified.stroke_m)
     change = 100.0 * np.abs(np.diff(currents[on_signal])) / MAX_CURRENT_A
