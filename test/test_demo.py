@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from sma_stage.demo import (
     DEFAULT_MODEL_FILE,
@@ -64,3 +65,11 @@ def test_the_demo_says_which_family_the_refit_deployed_and_passes_its_families_t
                                                                    "compensator")
     gpi = {"diagnosis": diagnosis, "identified_model": {"effects": []}}
     assert describe_diagnosis(gpi).endswith("the plain GPI went to the compensator")
+
+
+def test_the_demo_refuses_an_unknown_family_in_one_line(tmp_path, capsys):
+    with pytest.raises(SystemExit) as ended:
+        main(["--out", str(tmp_path / "out"), "--no-nodes", "--families", "gpi,preisach"])
+    assert ended.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "unknown model family 'preisach'" in error and not (tmp_path / "out").exists()
