@@ -1029,7 +1029,8 @@ def test_the_model_watch_publishes_the_residual_and_flags_a_stage_that_moved(ros
     wait_until(lambda: identification.watch.state() == "drift", 5.0, "drift")
     wait_until(lambda: watch_statuses()[-1].level == DiagnosticStatus.WARN, 5.0, "WARN on /diagnostics")
     assert {value.key for value in watch_statuses()[-1].values} >= {"state", "residual_rms_m", "drift_statistic",
-                                                                     "drift_threshold", "model_age_s", "model_source"}
+                                                                     "drift_threshold", "bias_statistic",
+                                                                     "model_age_s", "model_source"}
 
 
 def test_identification_refuses_a_refit_without_enough_data(ros):

@@ -110,6 +110,22 @@ def test_a_shift_of_a_fifth_of_the_models_error_is_flagged_by_the_path_test_with
     assert 1500.0 <= when <= 1620.0 and path_drift and not level_drift, flags
 
 
+def test_a_steady_shift_under_the_size_tests_allowance_is_flagged_by_the_mean_within_two_minutes():
+    """0.5 um added from 1500 s, a twentieth of the model's structured error and under what the path test's size
+    counts as no change: its mean (the bias test, scaled by how far a window's mean wandered while calibrating)
+    flags it within six windows."""
+    t, u, position = plant_record("periodic", 5e-7, 1500.0)
+    watch = ModelWatch(example_model(), FAST)
+    for start in range(0, t.size, 50):
+        watch.step(t[start:start + 50], u[start:start + 50], position[start:start + 50])
+        if watch.state == "drift":
+            break
+    assert watch.bias_drift, "not flagged by the mean"
+    assert 1500.0 <= t[start:start + 50][-1] <= 1620.0
+    assert watch.path_statistic <= FAST.shift_threshold and not watch.cusum.drift, "the size and level did not trip"
+    assert 0.0 < watch.held_out_bias_m < 0.5e-6
+
+
 def test_a_path_never_retraced_is_not_judged_and_gives_no_alarm():
     watch, flags = watch_record(*plant_record("wandering", 2e-6, 1500.0))
     assert flags == [] and watch.judged_windows == 0

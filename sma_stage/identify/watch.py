@@ -17,7 +17,13 @@ started where the watch started it, settles onto the stage's state):
   z = sqrt(max(0, e^2 - noise^2)) / r0 (e the innovations' RMS, noise what the sensor noise alone gives, r0 the
   reference below) and S = max(0, S + z - shift_allowance); drift while S > shift_threshold. It sees a change
   of a fraction of the model's own error where the stage revisits ground it covered twice while calibrating;
-  elsewhere it does not judge (`coverage`).
+  elsewhere it does not judge (`coverage`). Beside the innovations' size it follows their mean: per judged window,
+  b = |mean innovation| / sigma, sigma the largest of: what the passes' variance and the noise give a window's
+  mean; the RMS of the calibration windows' mean innovations, each remembered sample compared with the other
+  passes only (how far a window's mean wanders with nothing changed, measured); BIAS_FLOOR r0. Then
+  S_b = max(0, S_b + b - bias_allowance) (capped as the size's); drift while S_b > bias_threshold. It sees a
+  change small against the model's error but steady (an ambient drift of a fraction of a kelvin) that the size,
+  which counts anything under shift_allowance r0 as no change, does not.
 - the level test: the residual's RMS r per window against the largest window RMS of the calibration (at least
   r0), S = max(0, S + ln(r / (allowance ceiling))), drift while S > threshold: the model's error grown beyond
   anything it showed, anywhere.
@@ -49,6 +55,8 @@ EXPECTED_FLOOR = 0.05  # ... and at least this fraction of r0
 MIN_JUDGED = 5  # the path test judges a window with at least this many samples it could compare
 WINDOWS_TO_TRIP = 3  # judged windows the path test needs at least to trip (one odd revisit does not)
 EXPLAINED = 2.0  # innovations up to this many times what the passes' differences and the noise give ...
+BIAS_FLOOR = 0.005  # the bias test's scale of a window's mean innovation is at least this fraction of r0
+MIN_HELD_OUT_WINDOWS = 5  # calibration windows compared with their other passes that measure the bias test's scale
 JUDGE_RATE_HZ = 10.0  # the path test judges at most this many samples per second of stage time
 MIN_FEATURE_SPREAD_M = 1e-9  # a feature that did not move in the memory is scaled as if it spread this much [m]
 
@@ -67,15 +75,18 @@ class DriftTest:
     shift_threshold: float = 0.3
     path_radius: float = 0.2  # a path this near remembered ones (in the memory's standard deviations) is judged
     min_coverage: float = 0.25  # the path test judges a window with at least this fraction of it covered
+    bias_allowance: float = 1.5  # a window's mean innovation up to this many of its standard errors is no change
+    bias_threshold: float = 3.0
 
     def __post_init__(self) -> None:
-        for name in ("window_s", "threshold", "shift_threshold", "path_radius"):
+        for name in ("window_s", "threshold", "shift_threshold", "path_radius", "bias_threshold"):
             if not 0.0 < getattr(self, name) < math.inf:
                 raise InputError(f"{name} must be positive and finite, got {getattr(self, name)}")
         if not 1.0 <= self.allowance < math.inf:
             raise InputError(f"allowance must be at least 1, got {self.allowance}")
-        if not 0.0 <= self.shift_allowance < math.inf:
-            raise InputError(f"shift_allowance must be at least 0 and finite, got {self.shift_allowance}")
+        for name in ("shift_allowance", "bias_allowance"):
+            if not 0.0 <= getattr(self, name) < math.inf:
+                raise InputError(f"{name} must be at least 0 and finite, got {getattr(self, name)}")
         if not 0.0 < self.min_coverage <= 1.0:
             raise InputError(f"min_coverage must be in (0, 1], got {self.min_coverage}")
         if self.calibration_windows < 1:
@@ -232,6 +243,28 @@ class PathMemory:
                   spread)
         return residual - reference, spread
 
+    def held_out_window_means(self, window_s: float, radius: float, gap_s: float, tolerance_m: float,
+                              min_coverage: float) -> np.ndarray:
+        """The mean innovation [m] of each window_s [s] of the remembered samples, each compared with the other passes
+        only (the samples within gap_s of it left out): what a window's mean innovation does with nothing changed.
+        Windows with fewer than MIN_JUDGED or min_coverage of their samples compared are left out."""
+        samples = self._times.size
+        _, index = self._tree.query(self._tree.data, k=2 * PATH_NEIGHBOURS, distance_upper_bound=radius)
+        found = index < samples
+        own_pass = np.abs(self._times[np.where(found, index, 0)] - self._times[:, None]) <= gap_s
+        index = np.where(found & ~own_pass, index, samples)
+        reference, spread = np.empty(samples), np.empty(samples)
+        _revisits(index, self._times, self._residuals, gap_s, tolerance_m, MIN_PASSES, reference, spread)
+        innovation = self._residuals - reference
+        slot = np.floor((self._times - self._times[0]) / window_s).astype(np.int64)
+        means = []
+        for window in np.unique(slot):
+            values = innovation[slot == window]
+            compared = values[np.isfinite(values)]
+            if compared.size >= MIN_JUDGED and compared.size >= min_coverage * values.size:
+                means.append(float(np.mean(compared)))
+        return np.array(means)
+
 
 def load_kernels(model: object) -> None:
     """Run the watch's compiled kernels and the model's forward once on a throwaway record, so that they load (or
@@ -243,6 +276,7 @@ def load_kernels(model: object) -> None:
     memory.remember(t_s, features, np.cos(t_s))
     memory.build()
     memory.innovations(features, np.cos(t_s), 1.0, PASS_GAP_S, 1.0)
+    memory.held_out_window_means(4.0, 1.0, 1.0, 1.0, 0.25)
 
 
 def thinned_to_rate(t_s: np.ndarray, rate_hz: float) -> np.ndarray:
@@ -310,14 +344,17 @@ class ModelWatch:
             self._state = self.model.run(*history, None)[1]
         self.memory = PathMemory()
         self.path_statistic = 0.0
+        self.bias_statistic = 0.0
         self.judged_windows = 0
         self._last_judged_s = -math.inf
-        self._level_onset_s = self._path_onset_s = 0.0
+        self._level_onset_s = self._path_onset_s = self._bias_onset_s = 0.0
         self.coverage: float | None = None  # the judged fraction of the last window the path test looked at
         self._started_s: float | None = None
         self._window: _Window | None = None
         self.last_window_rms: float | None = None
         self.last_innovation_rms: float | None = None
+        self.last_bias_z: float | None = None  # the last judged window's |mean innovation| in its standard errors
+        self.held_out_bias_m: float | None = None  # a window's mean innovation with nothing changed, RMS [m]
         self.samples = 0
 
     def step(self, t_s: np.ndarray, current_a: np.ndarray, position_m: np.ndarray) -> np.ndarray:
@@ -387,12 +424,14 @@ class ModelWatch:
             first = end
 
     def _close_window(self, window: _Window) -> None:
-        level_before, path_before = self.cusum.statistic, self.path_statistic
+        level_before, path_before, bias_before = self.cusum.statistic, self.path_statistic, self.bias_statistic
         self._test_window(window)
         if level_before == 0.0 < self.cusum.statistic:
             self._level_onset_s = window.start_s
         if path_before == 0.0 < self.path_statistic:
             self._path_onset_s = window.start_s
+        if bias_before == 0.0 < self.bias_statistic:
+            self._bias_onset_s = window.start_s
 
     def _test_window(self, window: _Window) -> None:
         residuals = np.concatenate(window.residuals)
@@ -414,18 +453,39 @@ class ModelWatch:
         excess = math.sqrt(max(0.0, self.last_innovation_rms**2 - EXPLAINED**2 * expected))
         step = min(excess / reference - self.test.shift_allowance, self.test.shift_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.path_statistic = max(0.0, self.path_statistic + step)
+        mean_variance = float(np.mean(spreads[judged])) + self.memory.noise_m**2 / np.count_nonzero(judged)
+        self.last_bias_z = abs(float(np.mean(innovations[judged]))) / math.sqrt(
+            max(mean_variance, self._held_out_bias(reference) ** 2, (BIAS_FLOOR * reference) ** 2))
+        step = min(self.last_bias_z - self.test.bias_allowance, self.test.bias_threshold / (WINDOWS_TO_TRIP - 0.5))
+        self.bias_statistic = max(0.0, self.bias_statistic + step)
+
+    def _held_out_bias(self, reference: float) -> float:
+        """The RMS [m] of the calibration windows' mean innovations, each sample compared with the other passes
+        (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's mean wanders with nothing changed."""
+        if self.held_out_bias_m is None:
+            means = self.memory.held_out_window_means(self.test.window_s, self.test.path_radius, PASS_GAP_S,
+                                                      PASS_AGREEMENT * reference, self.test.min_coverage)
+            self.held_out_bias_m = float(np.sqrt(np.mean(np.square(means)))) if means.size >= MIN_HELD_OUT_WINDOWS \
+                else 0.0
+        return self.held_out_bias_m
 
     @property
     def path_drift(self) -> bool:
-        return self.path_statistic > self.test.shift_threshold
+        """The path test tripped, by the innovations' size or by their mean."""
+        return self.path_statistic > self.test.shift_threshold or self.bias_drift
+
+    @property
+    def bias_drift(self) -> bool:
+        return self.bias_statistic > self.test.bias_threshold
 
     @property
     def onset_s(self) -> float | None:
-        """Where the change began [s of stage time]: the start of the window from which the test that tripped rose
-        from 0 (None without drift)."""
-        if self.path_drift:
-            return self._path_onset_s
-        return self._level_onset_s if self.cusum.drift else None
+        """Where the change began [s of stage time]: the start of the window from which a test that tripped rose
+        from 0, the earliest of them (None without drift)."""
+        onsets = [onset for tripped, onset in ((self.path_statistic > self.test.shift_threshold, self._path_onset_s),
+                                               (self.bias_drift, self._bias_onset_s),
+                                               (self.cusum.drift, self._level_onset_s)) if tripped]
+        return min(onsets) if onsets else None
 
     @property
     def state(self) -> str:
@@ -437,6 +497,7 @@ class ModelWatch:
         return self.cusum.reference is None
 
     def restart_tests(self) -> None:
-        """Both statistics back to 0 (the model runs on, the reference and the memory are kept)."""
+        """Every statistic back to 0 (the model runs on, the reference and the memory are kept)."""
         self.cusum.statistic = 0.0
         self.path_statistic = 0.0
+        self.bias_statistic = 0.0

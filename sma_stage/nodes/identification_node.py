@@ -154,6 +154,11 @@ IDENTIFICATION_PARAMS = [
           "fraction of the reference counts as no change", 0.0, 10.0, read_only=True),
     Param("watch_shift_threshold", 0.3, "path test: drift when the CUSUM of the moved fraction less the allowance "
           "exceeds this", 0.01, 100.0, read_only=True),
+    Param("watch_bias_allowance", 1.5, "path test: where the stage retraces its path, a window's mean residual moved "
+          "by up to this many standard errors (from how it wandered there while calibrating) counts as no change",
+          0.0, 100.0, read_only=True),
+    Param("watch_bias_threshold", 3.0, "path test: drift when the CUSUM of the mean's standard errors less the "
+          "allowance exceeds this", 0.01, 1000.0, read_only=True),
     Param("watch_path_radius", 0.2, "path test: how near a remembered path [its standard deviations] counts as the "
           "same path", 0.001, 10.0, read_only=True),
     Param("watch_allowance", 1.5, "level test: windows up to this times the largest calibration window count as no "
@@ -377,10 +382,16 @@ class IdentificationNode(Node):
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics))
         self.watch: WatchChannel | None = None
         if self.values["watch"]:
-            test = DriftTest(float(self.values["watch_window"]), float(self.values["watch_allowance"]),
-                             float(self.values["watch_threshold"]), int(self.values["watch_calibration_windows"]),
-                             int(self.values["watch_warmup_windows"]), float(self.values["watch_shift_allowance"]),
-                             float(self.values["watch_shift_threshold"]), float(self.values["watch_path_radius"]))
+            test = DriftTest(
+                window_s=float(self.values["watch_window"]), allowance=float(self.values["watch_allowance"]),
+                threshold=float(self.values["watch_threshold"]),
+                calibration_windows=int(self.values["watch_calibration_windows"]),
+                warmup_windows=int(self.values["watch_warmup_windows"]),
+                shift_allowance=float(self.values["watch_shift_allowance"]),
+                shift_threshold=float(self.values["watch_shift_threshold"]),
+                path_radius=float(self.values["watch_path_radius"]),
+                bias_allowance=float(self.values["watch_bias_allowance"]),
+                bias_threshold=float(self.values["watch_bias_threshold"]))
             self.watch = WatchChannel(self, test, float(self.values["excite_time_scale"]),
                                       str(self.values["joint_name"]), float(self.values["watch_record"]),
                                       self.on_drift)

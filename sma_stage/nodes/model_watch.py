@@ -125,7 +125,11 @@ class WatchChannel:
         self._reported_state = state
         if state != "drift":
             return
-        if watch.path_drift:
+        if watch.bias_drift:
+            evidence = (f"where the stage retraces its path the residual moved steadily, by {watch.last_bias_z:.3g} "
+                        f"times what its mean did with nothing changed in the last window (bias statistic "
+                        f"{watch.bias_statistic:.3g} > {self.test.bias_threshold:g})")
+        elif watch.path_drift:
             evidence = (f"where the stage retraces its path the residual moved by {watch.last_innovation_rms:.3g} m "
                         f"RMS (path statistic {watch.path_statistic:.3g} > {self.test.shift_threshold:g}, reference "
                         f"{watch.cusum.reference:.3g} m)")
@@ -161,6 +165,9 @@ class WatchChannel:
                 "reference_rms_m": reference if reference is not None else "calibrating",
                 "drift_statistic": round(watch.path_statistic, 4),
                 "drift_threshold": self.test.shift_threshold,
+                "bias_statistic": round(watch.bias_statistic, 4),
+                "bias_threshold": self.test.bias_threshold,
+                "bias_held_out_m": watch.held_out_bias_m if watch.held_out_bias_m is not None else "calibrating",
                 "path_coverage": round(watch.coverage, 3) if watch.coverage is not None else "none",
                 "level_statistic": round(watch.cusum.statistic, 4),
                 "level_threshold": self.test.threshold,
