@@ -40,6 +40,7 @@ class Tracking:
         self.stamps: list[float] = []
         self.positions: list[float] = []
         self.watch_states: list[tuple[float, str]] = []
+        self.watch_values: list[tuple[float, dict[str, str]]] = []
         self.reports: list[dict] = []
         self.publisher = client.node.create_publisher(Float64, "setpoint", COMMAND_QOS)
         client.node.create_subscription(JointState, "joint_states", self.on_state, STATE_SUBSCRIBE_QOS)
@@ -58,8 +59,20 @@ class Tracking:
         for status in message.status:
             if status.name.endswith("model watch"):
                 values = {item.key: item.value for item in status.values}
-                self.watch_states.append((message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec,
-                                          values["state"]))
+                stamp_s = message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec
+                self.watch_states.append((stamp_s, values["state"]))
+                self.watch_values.append((stamp_s, values))
+
+    def watch_summary(self, start_s: float, stop_s: float) -> str:
+        """The largest of each drift statistic on /diagnostics between two times, and the bias test's scale."""
+        seen = [values for stamp, values in self.watch_values if start_s <= stamp < stop_s]
+
+        def largest(key: str) -> float:
+            return max((float(values[key]) for values in seen if key in values), default=float("nan"))
+
+        scale = next((values["bias_held_out_m"] for values in reversed(seen) if "bias_held_out_m" in values), "none")
+        return (f"watch from {start_s:.0f} to {stop_s:.0f} s: largest statistics path {largest('drift_statistic')}, "
+                f"bias {largest('bias_statistic')}, level {largest('level_statistic')}; bias_held_out_m {scale}")
 
     def until(self, predicate, wall_timeout_s: float, what: str, check) -> None:
         """Keep the setpoint following the sine until predicate() holds."""
@@ -113,7 +126,9 @@ def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
 
             tracking.until(lambda: client.now_s() >= LOAD_STEP_S - 1.0, 120.0, "the load step", nodes.check_running)
             before = [state for stamp, state in tracking.watch_states if started_s + 1000.0 <= stamp < LOAD_STEP_S]
-            assert before and set(before) == {"ok"}, "nothing changed: the watch stays ok"
+            summary = tracking.watch_summary(started_s + 1000.0, LOAD_STEP_S)
+            print(summary)
+            assert before and set(before) == {"ok"}, f"nothing changed: the watch stays ok ({summary})"
             tracking.until(lambda: watch_state_at(LOAD_STEP_S) is not None and
                            any(state == "drift" for stamp, state in tracking.watch_states if stamp >= LOAD_STEP_S),
                            60.0, "drift", nodes.check_running)
