@@ -94,6 +94,16 @@ def watch_record(t, u, position, test: DriftTest = FAST, chunk: int = 50) -> tup
     return watch, flags
 
 
+def watch_until_drift(t, u, position, chunk: int) -> tuple[ModelWatch, float]:
+    """Feed a record in chunks until the first drift: (the watch, the last time fed [s])."""
+    watch = ModelWatch(example_model(), FAST)
+    for start in range(0, t.size, chunk):
+        watch.step(t[start:start + chunk], u[start:start + chunk], position[start:start + chunk])
+        if watch.state == "drift":
+            break
+    return watch, float(t[start:start + chunk][-1])
+
+
 def test_the_path_test_stays_quiet_on_the_models_own_repeatable_error():
     watch, flags = watch_record(*plant_record("periodic", seconds=4800.0))
     assert flags == []
@@ -114,14 +124,9 @@ def test_a_steady_shift_under_the_size_tests_allowance_is_flagged_by_the_mean_wi
     """0.5 um added from 1500 s, a twentieth of the model's structured error and under what the path test's size
     counts as no change: its mean (the bias test, scaled by how far a window's mean wandered while calibrating)
     flags it within six windows."""
-    t, u, position = plant_record("periodic", 5e-7, 1500.0)
-    watch = ModelWatch(example_model(), FAST)
-    for start in range(0, t.size, 50):
-        watch.step(t[start:start + 50], u[start:start + 50], position[start:start + 50])
-        if watch.state == "drift":
-            break
+    watch, when = watch_until_drift(*plant_record("periodic", 5e-7, 1500.0), chunk=50)
     assert watch.bias_drift, "not flagged by the mean"
-    assert 1500.0 <= t[start:start + 50][-1] <= 1620.0
+    assert 1500.0 <= when <= 1620.0
     assert watch.path_statistic <= FAST.shift_threshold and not watch.cusum.drift, "the size and level did not trip"
     assert 0.0 < watch.held_out_bias_m < 0.5e-6
 
@@ -165,10 +170,5 @@ def test_the_recent_record_keeps_the_last_seconds_in_order():
 
 
 def test_the_drift_says_where_the_change_began():
-    t, u, position = plant_record("periodic", 2e-6, 1500.0)
-    watch = ModelWatch(example_model(), FAST)
-    for start in range(0, t.size, 5):
-        watch.step(t[start:start + 5], u[start:start + 5], position[start:start + 5])
-        if watch.state == "drift":
-            break
+    watch, _ = watch_until_drift(*plant_record("periodic", 2e-6, 1500.0), chunk=5)
     assert watch.state == "drift" and 1500.0 - FAST.window_s <= watch.onset_s <= 1500.0 + FAST.window_s
