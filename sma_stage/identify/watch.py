@@ -444,17 +444,19 @@ class ModelWatch:
             return
         if innovations.size == 0:
             return
-        self.coverage = np.count_nonzero(judged) / innovations.size
-        if self.coverage < self.test.min_coverage or np.count_nonzero(judged) < MIN_JUDGED:
+        count = np.count_nonzero(judged)
+        self.coverage = count / innovations.size
+        if self.coverage < self.test.min_coverage or count < MIN_JUDGED:
             return
         self.judged_windows += 1
-        self.last_innovation_rms = float(np.sqrt(np.mean(np.square(innovations[judged]))))
-        expected = max(float(np.mean(spreads[judged])) + self.memory.noise_m**2, (EXPECTED_FLOOR * reference) ** 2)
+        innovations, mean_spread = innovations[judged], float(np.mean(spreads[judged]))
+        self.last_innovation_rms = float(np.sqrt(np.mean(np.square(innovations))))
+        expected = max(mean_spread + self.memory.noise_m**2, (EXPECTED_FLOOR * reference) ** 2)
         excess = math.sqrt(max(0.0, self.last_innovation_rms**2 - EXPLAINED**2 * expected))
         step = min(excess / reference - self.test.shift_allowance, self.test.shift_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.path_statistic = max(0.0, self.path_statistic + step)
-        mean_variance = float(np.mean(spreads[judged])) + self.memory.noise_m**2 / np.count_nonzero(judged)
-        self.last_bias_z = abs(float(np.mean(innovations[judged]))) / math.sqrt(
+        mean_variance = mean_spread + self.memory.noise_m**2 / count
+        self.last_bias_z = abs(float(np.mean(innovations))) / math.sqrt(
             max(mean_variance, self._held_out_bias(reference) ** 2, (BIAS_FLOOR * reference) ** 2))
         step = min(self.last_bias_z - self.test.bias_allowance, self.test.bias_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.bias_statistic = max(0.0, self.bias_statistic + step)
@@ -472,7 +474,11 @@ class ModelWatch:
     @property
     def path_drift(self) -> bool:
         """The path test tripped, by the innovations' size or by their mean."""
-        return self.path_statistic > self.test.shift_threshold or self.bias_drift
+        return self.size_drift or self.bias_drift
+
+    @property
+    def size_drift(self) -> bool:
+        return self.path_statistic > self.test.shift_threshold
 
     @property
     def bias_drift(self) -> bool:
@@ -482,7 +488,7 @@ class ModelWatch:
     def onset_s(self) -> float | None:
         """Where the change began [s of stage time]: the start of the window from which a test that tripped rose
         from 0, the earliest of them (None without drift)."""
-        onsets = [onset for tripped, onset in ((self.path_statistic > self.test.shift_threshold, self._path_onset_s),
+        onsets = [onset for tripped, onset in ((self.size_drift, self._path_onset_s),
                                                (self.bias_drift, self._bias_onset_s),
                                                (self.cusum.drift, self._level_onset_s)) if tripped]
         return min(onsets) if onsets else None
