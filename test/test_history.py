@@ -1,5 +1,8 @@
 """The models in force (sma_stage.identify.history): the history keeps the last N and moves a model seen again to
-the end; a candidate replaces the model in force only when it predicts the held-out tail better."""
+the end; a candidate replaces the model in force only when it predicts the held-out tail better; a refit of the
+hysteresis alone holds the model's dynamics."""
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -7,7 +10,11 @@ from test_two_wire import example_model
 
 from sma_stage.errors import InputError
 from sma_stage.identify.history import ModelHistory, judge_swap, started_from
+from sma_stage.identify.pipeline import dynamics_held_refusal, refit_hysteresis
 from sma_stage.io.series import make_series
+from sma_stage.model.effects import Effect
+from sma_stage.model.identified import load_model_file
+from sma_stage.plant import Effects, simulate
 
 
 def models(count: int) -> list:
@@ -58,3 +65,35 @@ def test_a_candidate_that_predicts_the_held_out_tail_worse_is_not_swapped_in():
     taken = judge_swap(truth, other, series, 900)
     assert taken.swap and taken.candidate.rms_pct < taken.in_force.rms_pct and "swapped in" in taken.reason
     assert "\n" not in taken.reason
+
+
+SHIPPED = load_model_file("config/model_default.yaml")
+
+
+def stage_record(load_n: float, seed: int, seconds: float = 1200.0):
+    """The stage simulator (not a GPI), load_n [N] heavier than by default, driven by a slow sine of current as a
+    tracking loop drives it."""
+    t = np.arange(0.0, seconds, 0.5)
+    u = 1.0 + 3.5 * np.sin(2 * np.pi * t / 100.0)
+    stage = simulate(u, 0.5, effects=Effects(load_change_n=load_n), seed=seed)
+    return make_series(t, u, stage.position_m, f"the stage {load_n:g} N heavier")
+
+
+def test_a_hysteresis_refit_holds_the_dynamics_and_follows_a_load_step():
+    in_force = refit_hysteresis(stage_record(0.0, seed=1), SHIPPED, 0.25).model
+    loaded = stage_record(8.0, seed=3)
+    found = refit_hysteresis(loaded, in_force, 0.25)
+    assert found.model.effects == in_force.effects == SHIPPED.effects, "the thermal lag is held"
+    decision = judge_swap(found.model, in_force, loaded, found.scored_from)
+    assert decision.swap and decision.candidate.rms_pct < 0.5 * decision.in_force.rms_pct, decision.reason
+    assert found.model.metadata["held_out_rms"] > 0.0 and "held" in found.report["refit"]
+
+
+def test_a_model_whose_hysteresis_cannot_be_refitted_alone_is_refused_in_one_line():
+    in_force = SHIPPED
+    drifting = replace(in_force, effects=in_force.effects + (Effect("drift", {"drift_m_per_s": 1e-9}),))
+    assert dynamics_held_refusal(in_force) is None
+    assert "two_wire model" in dynamics_held_refusal(example_model())
+    with pytest.raises(InputError, match="the drift effect") as refused:
+        refit_hysteresis(stage_record(0.0, seed=1, seconds=300.0), drifting, 0.25)
+    assert "\n" not in str(refused.value)

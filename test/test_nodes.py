@@ -941,6 +941,9 @@ def test_on_drift_excite_runs_a_short_excitation_then_a_guarded_refit_and_rolls_
     the model in force; the swap is in ~/report's history, and ~/rollback puts the model before back."""
     stage, identification = fast_stage_and_identification(ros, on_drift="excite", drift_excite_duration=500.0,
                                                           excite_duration=5.0)
+    refused = identification.set_parameters([Parameter("drift_refit_scope", value="everything")])[0]
+    assert not refused.successful and refused.reason.startswith("drift_refit_scope must be one of hysteresis, full")
+    assert identification.get_parameter("drift_refit_scope").value == "hysteresis"
     compensator = compensator_node(ros, rate_hz=2.0)
     wait_until(lambda: identification.history.current is not None, 5.0, "the compensator's model in force")
     shipped = compensator.model

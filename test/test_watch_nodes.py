@@ -37,8 +37,7 @@ class Tracking:
 
     def __init__(self, client: RosClient) -> None:
         self.client, self.middle, self.amplitude = client, 0.0, 0.0
-        self.stamps: list[float] = []
-        self.positions: list[float] = []
+        self.states: list[tuple[float, float]] = []  # (stamp [s], position [m]), appended whole by the spin thread
         self.watch_states: list[tuple[float, str]] = []
         self.watch_values: list[tuple[float, dict[str, str]]] = []
         self.reports: list[dict] = []
@@ -52,8 +51,7 @@ class Tracking:
         return self.middle + self.amplitude * np.sin(2 * np.pi * t_s / PERIOD_S)
 
     def on_state(self, message: JointState) -> None:
-        self.stamps.append(message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec)
-        self.positions.append(message.position[0])
+        self.states.append((message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec, message.position[0]))
 
     def on_diagnostics(self, message: DiagnosticArray) -> None:
         for status in message.status:
@@ -86,7 +84,7 @@ class Tracking:
         wait_for(tracked, wall_timeout_s, what, check, poll_s=0.005)
 
     def tracking_rms_m(self, start_s: float, stop_s: float) -> float:
-        stamps, positions = np.array(self.stamps), np.array(self.positions)
+        stamps, positions = np.array(list(self.states)).T
         kept = (stamps >= start_s) & (stamps < stop_s)
         return float(np.sqrt(np.mean((positions[kept] - self.setpoint(stamps[kept])) ** 2)))
 
@@ -114,7 +112,8 @@ def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
             first = refit_after_excitation(client, nodes.check_running)
             assert first["compensator"]["pushed"], first["compensator"]["message"]
             refitted = client.get_parameters("compensator", ["model"])["model"]
-            low, high = min(tracking.positions), max(tracking.positions)
+            positions = [position for _, position in tracking.states]
+            low, high = min(positions), max(positions)
             tracking.middle, tracking.amplitude = 0.5 * (low + high), 0.3 * (high - low)
             started_s = client.now_s()
             print(f"tracking from {started_s:.0f} s of simulated time")

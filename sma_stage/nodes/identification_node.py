@@ -68,7 +68,14 @@ from sma_stage.identify.cancel import Cancelled
 from sma_stage.identify.diagnosis import lower_priority, warm_up
 from sma_stage.identify.families import check_families
 from sma_stage.identify.history import ModelHistory, judge_swap, started_from
-from sma_stage.identify.pipeline import FIT_SAMPLES, deployed_held_out, identify_recording
+from sma_stage.identify.pipeline import (
+    FIT_SAMPLES,
+    Identification,
+    deployed_held_out,
+    dynamics_held_refusal,
+    identify_recording,
+    refit_hysteresis,
+)
 from sma_stage.identify.watch import DriftTest, ModelWatch
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
@@ -96,6 +103,7 @@ from sma_stage.signals import designed_identification_signal, paper_identificati
 
 EXCITATIONS = ("paper", "designed")
 ON_DRIFT = ("report", "refit", "excite")
+DRIFT_REFIT_SCOPES = ("hysteresis", "full")
 STORAGES = ("sqlite3", "mcap")
 DIAGNOSTICS_PERIOD_S = 1.0
 
@@ -172,6 +180,9 @@ IDENTIFICATION_PARAMS = [
           "drift_excite_duration, then the same on that)"),
     Param("drift_refit_record", 600.0, "on_drift refit: the refit waits for this much of the record from where the "
           "change began, and fits that [s of stage time; at most watch_record]", 60.0, 86400.0),
+    Param("drift_refit_scope", "hysteresis", "on_drift refit, on the tracking record: hysteresis (refit the GPI "
+          "parameters with the model in force's thermal dynamics held; a full identification for a model that is "
+          "not a GPI with input effects only) or full (identify everything again, as ~/refit)"),
     Param("drift_excite_duration", 300.0, "on_drift excite: the excitation's length [s of signal time]", 1.0, 1e6),
     Param("model_history", 5, "models in force kept, newest last (~/rollback restores the one before)", 2, 1000,
           read_only=True),
@@ -413,6 +424,9 @@ class IdentificationNode(Node):
         """Refuse an on_drift this node does not know, or a drift refit's record longer than the watch keeps."""
         if values["on_drift"] not in ON_DRIFT:
             raise InputError(f"on_drift must be one of {', '.join(ON_DRIFT)}, got {values['on_drift']!r}")
+        if values["drift_refit_scope"] not in DRIFT_REFIT_SCOPES:
+            raise InputError(f"drift_refit_scope must be one of {', '.join(DRIFT_REFIT_SCOPES)}, got "
+                             f"{values['drift_refit_scope']!r}")
         if float(values["drift_refit_record"]) > float(values["watch_record"]):
             raise InputError(f"drift_refit_record {values['drift_refit_record']:g} s is longer than the watch keeps "
                              f"(watch_record {values['watch_record']:g} s)")
@@ -749,19 +763,23 @@ class IdentificationNode(Node):
         self.get_logger().info(f"~/refit: {response.message}")
         return response
 
+    def identify(self, series: Series, source: str) -> Identification:
+        """The identification pipeline on series with this node's settings (held-out tail, operators,
+        diagnosis, families, thinning)."""
+        return identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
+                                  operators=int(self.values["operators"]) or None,
+                                  diagnose_rounds=int(self.values["diagnose_rounds"]), source=source,
+                                  workers=int(self.values["diagnose_workers"]),
+                                  families=tuple(self.values["families"]),
+                                  max_fit_samples=int(self.values["max_fit_samples"]))
+
     def refit(self) -> dict:
         """Identify, write the model file, push the model; the report (InputError when refused). Runs at a lower
         priority than the node's other threads (a stage on the same computer keeps its cycles)."""
         lower_priority(thread=True)
         series = self.snapshot()
         self.get_logger().info(f"~/refit: fitting {len(series)} samples")
-        found = identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
-                                   operators=int(self.values["operators"]) or None,
-                                   diagnose_rounds=int(self.values["diagnose_rounds"]),
-                                   source="identification node ~/refit",
-                                   workers=int(self.values["diagnose_workers"]),
-                                   families=tuple(self.values["families"]),
-                                   max_fit_samples=int(self.values["max_fit_samples"]))
+        found = self.identify(series, "identification node ~/refit")
         report = found.report
         self.check_held_out(report, series)
         report["model_file"] = self.write_model(found.model)
@@ -882,7 +900,8 @@ class IdentificationNode(Node):
         if len(t_s) and t_s[-1] - start_s >= float(self.values["drift_refit_record"]):
             self._drift_refit_from_s = None
             self.start_guarded_refit(f"the record from {start_s:.0f} s, where the change began",
-                                     lambda: self.recent_series(start_s))
+                                     lambda: self.recent_series(start_s),
+                                     hysteresis_only=self.values["drift_refit_scope"] == "hysteresis")
 
     def on_drift(self, watch: ModelWatch) -> None:
         """The watch turned to drift: act as on_drift says (report: the watch logged it already)."""
@@ -908,9 +927,10 @@ class IdentificationNode(Node):
         return make_series(t_s[kept], current_a[kept], position_m[kept], "the watch's recent record",
                            min_samples=int(self.values["min_samples"]))
 
-    def start_guarded_refit(self, what: str, series: Callable[[], Series]) -> None:
-        """Refit what series() gives in the background; the model in force is replaced only when the new one
-        predicts the held-out tail better."""
+    def start_guarded_refit(self, what: str, series: Callable[[], Series], hysteresis_only: bool = False) -> None:
+        """Refit what series() gives in the background (hysteresis_only: the model in force's GPI parameters with
+        its dynamics held, where it can be); the model in force is replaced only when the new one predicts the
+        held-out tail better."""
         reason = self.refusal()
         if reason is not None:
             self.get_logger().warning(f"refit on drift refused: {reason}")
@@ -919,7 +939,7 @@ class IdentificationNode(Node):
         def work() -> None:
             lower_priority(thread=True)
             try:
-                self.guarded_refit(what, series())
+                self.guarded_refit(what, series(), hysteresis_only)
             except InputError as error:
                 self.get_logger().warning(f"refit on drift refused: {error}")
             except Cancelled:
@@ -933,19 +953,22 @@ class IdentificationNode(Node):
 
         self.refit_service.run_in_background(work)
 
-    def guarded_refit(self, what: str, series: Series) -> None:
-        """Fit series; push the model if it predicts the held-out tail better than the model in force."""
+    def guarded_refit(self, what: str, series: Series, hysteresis_only: bool = False) -> None:
+        """Fit series (see start_guarded_refit); push the model if it predicts the held-out tail better than the
+        model in force."""
         in_force = self.history.current
         if in_force is None:
             raise InputError("no model in force is known (has the compensator published ~/model?)")
-        self.get_logger().info(f"refit on drift: fitting {what} ({len(series)} samples)")
-        found = identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
-                                   operators=int(self.values["operators"]) or None,
-                                   diagnose_rounds=int(self.values["diagnose_rounds"]),
-                                   source=f"identification node, refit on drift ({what})",
-                                   workers=int(self.values["diagnose_workers"]),
-                                   families=tuple(self.values["families"]),
-                                   max_fit_samples=int(self.values["max_fit_samples"]))
+        refusal = dynamics_held_refusal(in_force.model) if hysteresis_only else None
+        if hysteresis_only and refusal is None:
+            self.get_logger().info(f"refit on drift: the hysteresis of the model in force on {what} ({len(series)} "
+                                   "samples), its dynamics held")
+            found = refit_hysteresis(series, in_force.model, float(self.values["holdout_fraction"]),
+                                     source=f"identification node, hysteresis refit on drift ({what})")
+        else:
+            self.get_logger().info(f"refit on drift: fitting {what} ({len(series)} samples)"
+                                   + (f"; all of it: {refusal}" if refusal else ""))
+            found = self.identify(series, f"identification node, refit on drift ({what})")
         decision = judge_swap(found.model, in_force.model, series, found.scored_from)
         report = {**found.report, "swap": {"swapped": decision.swap, "reason": decision.reason,
                                            "candidate": decision.candidate.to_dict(),
