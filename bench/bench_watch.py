@@ -1,7 +1,7 @@
 """The model watch on the stage simulator, in process (no ROS): false alarms while nothing changes, and how soon
 a change of the stage is flagged; the watch's cost per sample. Prints tables.
 
-    .venv/bin/python bench/bench_watch.py [--hours 4] [--seeds 0,1,2] [--change-seeds 1]
+    .venv/bin/python bench/bench_watch.py [--hours 4] [--seeds 0,1,2] [--change-seeds 1] [--path-time-constants 2,8]
 
 The model is identified as bench/bench_tracking.py identifies it (the paper's signals, the package's pipeline);
 then a fresh simulator tracks a setpoint with the compensator's PI loop at 0.1 s, and the watch
@@ -77,13 +77,13 @@ def record(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: in
     return rows
 
 
-def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int
+def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, test: DriftTest | None = None
         ) -> tuple[list[tuple[float, str]], float, float, float]:
     """((time [s], test) of each drift flag, restarting the tests after each; the tracking RMS [m]; the path test's
     mean coverage of the windows it looked at; the watch's mean cost per sample [us]). The watch is fed the record
     CHUNK_STEPS samples at a time, as it would be while the stage runs (it only looks back)."""
     rows = record(model, setpoint, effects, seconds, seed)
-    watch = ModelWatch(model)
+    watch = ModelWatch(model, test)
     alarms, coverages, watch_s = [], [], 0.0
     for start in range(0, len(rows) - CHUNK_STEPS + 1, CHUNK_STEPS):
         chunk = rows[start:start + CHUNK_STEPS]
@@ -139,15 +139,18 @@ def main() -> int:
     parser.add_argument("--hours", type=float, default=4.0, help="hours of tracking per run with nothing changing")
     parser.add_argument("--seeds", default="0,1,2", help="simulator seeds of the sine runs with nothing changing")
     parser.add_argument("--change-seeds", default="1", help="simulator seeds of the runs with a change")
+    parser.add_argument("--path-time-constants", default=None,
+                        help="the path test's low-passes of the position [s], comma-separated (default: the watch's)")
     args = parser.parse_args()
     started = time.perf_counter()
     identified = identify()
     model = identified.models[1].model
     stroke = identified.stroke_m[1] - identified.stroke_m[0]
     kinds = setpoints(identified.stroke_m)
-    test = DriftTest()
+    test = DriftTest() if args.path_time_constants is None else DriftTest(
+        path_time_constants_s=tuple(float(tau) for tau in args.path_time_constants.split(",")))
     warm_up_s = (test.warmup_windows + test.calibration_windows + 5) * test.window_s
-    run(model, kinds["sine"], Effects(), warm_up_s, 0)  # the watch's kernels compiled before anything is timed
+    run(model, kinds["sine"], Effects(), warm_up_s, 0, test)  # the watch's kernels compiled before anything is timed
     print(f"model: {identified.models[1].name}, held-out RMS {model.metadata.get('held_out_rms', float('nan')):.3g} m, "
           f"stroke {stroke:.4g} m; watch at its defaults ({test}); PI loop at {CONTROL_STEP_S:g} s\n")
     print("| setpoint | seed | simulated h | false alarms | tracking RMS % of stroke | path test coverage | "
@@ -156,7 +159,7 @@ def main() -> int:
     runs = [("sine", int(seed)) for seed in args.seeds.split(",")] + [("two cosines", 0), ("held random levels", 0)]
     alarms_total, hours_total = 0, 0.0
     for kind, seed in runs:
-        alarms, rms, coverage, cost = run(model, kinds[kind], Effects(), 3600.0 * args.hours, seed)
+        alarms, rms, coverage, cost = run(model, kinds[kind], Effects(), 3600.0 * args.hours, seed, test)
         alarms_total, hours_total = alarms_total + len(alarms), hours_total + args.hours
         listed = f" ({', '.join(f'{when:.0f} s {test}' for when, test in alarms[:3])})" if alarms else ""
         print(f"| {kind} | {seed} | {args.hours:g} | {len(alarms)}{listed} | {100 * rms / stroke:.3f} | "
@@ -168,7 +171,7 @@ def main() -> int:
     cases = [("sine", name, int(seed)) for name in CHANGES for seed in args.change_seeds.split(",")] + [
         ("two cosines", "load step 2 N", 1), ("held random levels", "load step 2 N", 1)]
     for kind, name, seed in cases:
-        alarms, _, _, _ = run(model, kinds[kind], CHANGES[name], CHANGE_S + AFTER_CHANGE_S, seed)
+        alarms, _, _, _ = run(model, kinds[kind], CHANGES[name], CHANGE_S + AFTER_CHANGE_S, seed, test)
         flagged = [(when, test) for when, test in alarms if when >= CHANGE_S]
         early = len(alarms) - len(flagged)
         delay, test = (f"{flagged[0][0] - CHANGE_S:.0f}", flagged[0][1]) if flagged else (

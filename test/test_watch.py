@@ -54,7 +54,8 @@ def test_the_reference_is_the_larger_of_the_held_out_level_and_the_calibration()
                                                 ("calibration_windows", 0), ("shift_allowance", -0.1),
                                                 ("shift_threshold", 0.0), ("path_radius", float("inf")),
                                                 ("min_coverage", 1.5), ("bias_allowance", -1.0),
-                                                ("bias_threshold", 0.0), ("bias_threshold", float("inf"))])
+                                                ("bias_threshold", 0.0), ("bias_threshold", float("inf")),
+                                                ("path_time_constants_s", ()), ("path_time_constants_s", (2.0, -8.0))])
 def test_bad_settings_are_refused_in_one_line(setting, value):
     with pytest.raises(InputError, match=setting):
         DriftTest(**{setting: value})

@@ -45,7 +45,7 @@ from scipy.spatial import cKDTree
 from sma_stage.errors import InputError
 
 STATES = ("ok", "drift", "no_model", "no_data")
-PATH_TIME_CONSTANTS_S = (2.0, 8.0, 30.0, 120.0)  # the low-passes of the applied current that summarise its path
+PATH_TIME_CONSTANTS_S = (2.0, 8.0, 30.0, 120.0)  # the low-passes of the measured position that summarise its path
 PATH_NEIGHBOURS = 16  # remembered samples looked at for each one judged (from two passes or more)
 MEMORY_RATE_HZ = 2.0  # the memory keeps at most this many samples per second of stage time
 PASS_GAP_S = 20.0  # remembered samples this far apart [s] are separate passes along the path
@@ -77,6 +77,7 @@ class DriftTest:
     min_coverage: float = 0.25  # the path test judges a window with at least this fraction of it covered
     bias_allowance: float = 1.5  # a window's mean innovation up to this many of its standard errors is no change
     bias_threshold: float = 3.0
+    path_time_constants_s: tuple[float, ...] = PATH_TIME_CONSTANTS_S  # the path's low-passes of the position [s]
 
     def __post_init__(self) -> None:
         for name in ("window_s", "threshold", "shift_threshold", "path_radius", "bias_threshold"):
@@ -87,6 +88,9 @@ class DriftTest:
         for name in ("shift_allowance", "bias_allowance"):
             if not 0.0 <= getattr(self, name) < math.inf:
                 raise InputError(f"{name} must be at least 0 and finite, got {getattr(self, name)}")
+        taus = self.path_time_constants_s
+        if not taus or not all(isinstance(tau, (int, float)) and 0.0 < tau < math.inf for tau in taus):
+            raise InputError(f"path_time_constants_s must be one or more positive finite times [s], got {taus!r}")
         if not 0.0 < self.min_coverage <= 1.0:
             raise InputError(f"min_coverage must be in (0, 1], got {self.min_coverage}")
         if self.calibration_windows < 1:
@@ -191,10 +195,11 @@ def _revisits(index: np.ndarray, times: np.ndarray, residuals: np.ndarray, gap_s
 class PathMemory:
     """The residual [m] remembered against the input's path: `features` of each sample from the applied
     current; `remember` until `build`; then `innovations` of new samples against it, where the memory holds
-    the path at least twice and the residual agreed."""
+    the path at least twice and the residual agreed. time_constants_s: the position's low-passes that summarise
+    the path [s]."""
 
-    def __init__(self) -> None:
-        self._taus = np.array(PATH_TIME_CONSTANTS_S)
+    def __init__(self, time_constants_s: tuple[float, ...] = PATH_TIME_CONSTANTS_S) -> None:
+        self._taus = np.array(time_constants_s, dtype=float)
         self._state = np.full(self._taus.size, np.nan)
         self._last_t = 0.0
         self._remembered: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -342,7 +347,7 @@ class ModelWatch:
         self._state = None
         if history is not None and len(history[0]):
             self._state = self.model.run(*history, None)[1]
-        self.memory = PathMemory()
+        self.memory = PathMemory(self.test.path_time_constants_s)
         self.path_statistic = 0.0
         self.bias_statistic = 0.0
         self.judged_windows = 0
@@ -400,7 +405,7 @@ class ModelWatch:
         if learning.any():
             self.memory.remember(t_s[learning], features[learning], residual[learning])
         if t_s[-1] >= end and not self.memory.build():
-            self.memory = PathMemory()  # too little came to remember: learn again from here
+            self.memory = PathMemory(self.test.path_time_constants_s)  # too little came to remember: learn again from here
             self._started_s = float(t_s[-1]) - self.test.warmup_windows * self.test.window_s
         return innovation, spread, looked_at
 
