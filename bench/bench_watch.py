@@ -152,7 +152,7 @@ def main() -> int:
     warm_up_s = (test.warmup_windows + test.calibration_windows + 5) * test.window_s
     run(model, kinds["sine"], Effects(), warm_up_s, 0, test)  # the watch's kernels compiled before anything is timed
     print(f"model: {identified.models[1].name}, held-out RMS {model.metadata.get('held_out_rms', float('nan')):.3g} m, "
-          f"stroke {stroke:.4g} m; watch at its defaults ({test}); PI loop at {CONTROL_STEP_S:g} s\n")
+          f"stroke {stroke:.4g} m; watch settings {test}; PI loop at {CONTROL_STEP_S:g} s\n")
     print("| setpoint | seed | simulated h | false alarms | tracking RMS % of stroke | path test coverage | "
           "watch cost per sample [us] |")
     print("|---|---|---|---|---|---|---|")
@@ -172,11 +172,11 @@ def main() -> int:
         ("two cosines", "load step 2 N", 1), ("held random levels", "load step 2 N", 1)]
     for kind, name, seed in cases:
         alarms, _, _, _ = run(model, kinds[kind], CHANGES[name], CHANGE_S + AFTER_CHANGE_S, seed, test)
-        flagged = [(when, test) for when, test in alarms if when >= CHANGE_S]
+        flagged = [(when, by) for when, by in alarms if when >= CHANGE_S]
         early = len(alarms) - len(flagged)
-        delay, test = (f"{flagged[0][0] - CHANGE_S:.0f}", flagged[0][1]) if flagged else (
+        delay, by = (f"{flagged[0][0] - CHANGE_S:.0f}", flagged[0][1]) if flagged else (
             f"none in {AFTER_CHANGE_S:g}", "-")
-        print(f"| {kind} | {name} | {seed} | {delay} | {test} | {early} |")
+        print(f"| {kind} | {name} | {seed} | {delay} | {by} | {early} |")
     after = " | ".join(f"{end_s:.0f} s after" for end_s in MOVED_AFTER_S)
     print(f"\nHow far each change moves the residual (sine, seed 1; mean over the {WINDOW_S:g} s ending at each time, "
           f"with the change less without it) [um], against the model's held-out RMS "
