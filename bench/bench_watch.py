@@ -32,6 +32,7 @@ from bench_tracking import CONTROL_STEP_S, MAX_CURRENT_A, identify  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.control.compensator import imc_gains  # noqa: E402
+from sma_stage.errors import InputError  # noqa: E402
 from sma_stage.identify.watch import DriftTest, ModelWatch  # noqa: E402
 from sma_stage.plant import StageSimulator  # noqa: E402
 from sma_stage.plant.config import Effects  # noqa: E402
@@ -147,8 +148,11 @@ def main() -> int:
     model = identified.models[1].model
     stroke = identified.stroke_m[1] - identified.stroke_m[0]
     kinds = setpoints(identified.stroke_m)
-    test = DriftTest() if args.path_time_constants is None else DriftTest(
-        path_time_constants_s=tuple(float(tau) for tau in args.path_time_constants.split(",")))
+    try:
+        test = DriftTest() if args.path_time_constants is None else DriftTest(
+            path_time_constants_s=tuple(float(tau) for tau in args.path_time_constants.split(",")))
+    except (ValueError, InputError) as error:
+        parser.error(f"--path-time-constants: {error}")
     warm_up_s = (test.warmup_windows + test.calibration_windows + 5) * test.window_s
     run(model, kinds["sine"], Effects(), warm_up_s, 0, test)  # the watch's kernels compiled before anything is timed
     print(f"model: {identified.models[1].name}, held-out RMS {model.metadata.get('held_out_rms', float('nan')):.3g} m, "

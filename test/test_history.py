@@ -90,9 +90,8 @@ def test_a_hysteresis_refit_holds_the_dynamics_and_follows_a_load_step():
 
 
 def test_a_model_whose_hysteresis_cannot_be_refitted_alone_is_refused_in_one_line():
-    in_force = SHIPPED
-    drifting = replace(in_force, effects=in_force.effects + (Effect("drift", {"drift_m_per_s": 1e-9}),))
-    assert dynamics_held_refusal(in_force) is None
+    drifting = replace(SHIPPED, effects=SHIPPED.effects + (Effect("drift", {"drift_m_per_s": 1e-9}),))
+    assert dynamics_held_refusal(SHIPPED) is None
     assert "two_wire model" in dynamics_held_refusal(example_model())
     with pytest.raises(InputError, match="the drift effect") as refused:
         refit_hysteresis(stage_record(0.0, seed=1, seconds=300.0), drifting, 0.25)

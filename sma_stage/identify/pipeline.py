@@ -129,9 +129,8 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
         report["diagnosis"] = found.to_dict()
     held_out = deployed_held_out(report)
     if held_out is not None and valid is not None:
-        span = float(np.ptp(valid.output[scored_from:]))
-        model = replace(model, metadata={**model.metadata, "held_out_rms": held_out["rms_pct"] / 100.0 * span,
-                                         "output_span": float(np.ptp(record.output))})
+        model = replace(model, metadata={**model.metadata, **_held_out_metadata(
+            held_out["rms_pct"], valid.output[scored_from:], record.output)})
     if block > 1:
         starts = found.starts if found is not None else {}
         start = starts.get("identification" if full_validation is None else "validation")
@@ -143,6 +142,12 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
     report["warnings"] = list(warnings)
     return Identification(model, fit, found, report, warnings, valid, scored_from,
                           gpi_model if chosen is not None else None)
+
+
+def _held_out_metadata(rms_pct: float, held_out_output: np.ndarray, output: np.ndarray) -> dict[str, float]:
+    """The model file's held_out_rms (rms_pct [%] of the held-out output's span, in the output's unit) and
+    output_span (the identification output's span) that the model watch scales by."""
+    return {"held_out_rms": rms_pct / 100.0 * float(np.ptp(held_out_output)), "output_span": float(np.ptp(output))}
 
 
 def dynamics_held_refusal(model: AnyModel) -> str | None:
@@ -179,9 +184,8 @@ def refit_hysteresis(record: Series, model: IdentifiedModel, holdout_fraction: f
     report["samples"] = {"identification": len(ident), "validation": len(record) - scored_from}
     report["refit"] = ("the hysteresis (GPI parameters) refitted from the model in force, its effects "
                        f"({', '.join(model.effect_names) or 'none'}) held")
-    span = float(np.ptp(record.output[scored_from:]))
     metadata = {"source": source or record.source, "samples": len(record),
-                "held_out_rms": errors.rms_pct / 100.0 * span, "output_span": float(np.ptp(record.output))}
+                **_held_out_metadata(errors.rms_pct, record.output[scored_from:], record.output)}
     refitted = replace(refitted, state=end_state, metadata=metadata)
     report["identified_model"] = refitted.without_state().to_dict()
     report["compensation"] = compensation_notes(refitted)

@@ -89,7 +89,7 @@ class DriftTest:
             if not 0.0 <= getattr(self, name) < math.inf:
                 raise InputError(f"{name} must be at least 0 and finite, got {getattr(self, name)}")
         taus = self.path_time_constants_s
-        if not taus or not all(isinstance(tau, (int, float)) and 0.0 < tau < math.inf for tau in taus):
+        if not taus or not all(isinstance(tau, (int, float)) and not isinstance(tau, bool) and 0.0 < tau < math.inf for tau in taus):
             raise InputError(f"path_time_constants_s must be one or more positive finite times [s], got {taus!r}")
         if not 0.0 < self.min_coverage <= 1.0:
             raise InputError(f"min_coverage must be in (0, 1], got {self.min_coverage}")
@@ -193,8 +193,8 @@ def _revisits(index: np.ndarray, times: np.ndarray, residuals: np.ndarray, gap_s
 
 
 class PathMemory:
-    """The residual [m] remembered against the input's path: `features` of each sample from the applied
-    current; `remember` until `build`; then `innovations` of new samples against it, where the memory holds
+    """The residual [m] remembered against the stage's path: `features` of each sample from the measured
+    position; `remember` until `build`; then `innovations` of new samples against it, where the memory holds
     the path at least twice and the residual agreed. time_constants_s: the position's low-passes that summarise
     the path [s]."""
 
