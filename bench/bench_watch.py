@@ -79,10 +79,11 @@ def record(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: in
 
 
 def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, test: DriftTest | None = None
-        ) -> tuple[list[tuple[float, str]], float, float, float]:
+        ) -> tuple[list[tuple[float, str]], float, float, float, float]:
     """((time [s], test) of each drift flag, restarting the tests after each; the tracking RMS [m]; the path test's
-    mean coverage of the windows it looked at; the watch's mean cost per sample [us]). The watch is fed the record
-    CHUNK_STEPS samples at a time, as it would be while the stage runs (it only looks back)."""
+    mean coverage of the windows it looked at; the watch's mean cost per sample [us]; how far a window's mean
+    innovation wandered while calibrating, the bias test's scale [m]). The watch is fed the record CHUNK_STEPS
+    samples at a time, as it would be while the stage runs (it only looks back)."""
     rows = record(model, setpoint, effects, seconds, seed)
     watch = ModelWatch(model, test)
     alarms, coverages, watch_s = [], [], 0.0
@@ -99,7 +100,8 @@ def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, 
             watch.restart_tests()  # the model runs on
     coverage = float(np.mean(coverages)) if coverages else float("nan")
     tracking_rms = float(np.sqrt(np.mean(np.square(rows[:, 2] - rows[:, 3]))))
-    return alarms, tracking_rms, coverage, 1e6 * watch_s / len(rows)
+    bias_scale = watch.held_out_bias_m if watch.held_out_bias_m is not None else float("nan")
+    return alarms, tracking_rms, coverage, 1e6 * watch_s / len(rows), bias_scale
 
 
 def alarm_test(watch: ModelWatch) -> str:
@@ -158,16 +160,16 @@ def main() -> int:
     print(f"model: {identified.models[1].name}, held-out RMS {model.metadata.get('held_out_rms', float('nan')):.3g} m, "
           f"stroke {stroke:.4g} m; watch settings {test}; PI loop at {CONTROL_STEP_S:g} s\n")
     print("| setpoint | seed | simulated h | false alarms | tracking RMS % of stroke | path test coverage | "
-          "watch cost per sample [us] |")
-    print("|---|---|---|---|---|---|---|")
+          "watch cost per sample [us] | bias test's scale [um] |")
+    print("|---|---|---|---|---|---|---|---|")
     runs = [("sine", int(seed)) for seed in args.seeds.split(",")] + [("two cosines", 0), ("held random levels", 0)]
     alarms_total, hours_total = 0, 0.0
     for kind, seed in runs:
-        alarms, rms, coverage, cost = run(model, kinds[kind], Effects(), 3600.0 * args.hours, seed, test)
+        alarms, rms, coverage, cost, bias_scale = run(model, kinds[kind], Effects(), 3600.0 * args.hours, seed, test)
         alarms_total, hours_total = alarms_total + len(alarms), hours_total + args.hours
         listed = f" ({', '.join(f'{when:.0f} s {test}' for when, test in alarms[:3])})" if alarms else ""
         print(f"| {kind} | {seed} | {args.hours:g} | {len(alarms)}{listed} | {100 * rms / stroke:.3f} | "
-              f"{coverage:.2f} | {cost:.1f} |")
+              f"{coverage:.2f} | {cost:.1f} | {1e6 * bias_scale:.3f} |")
     rate = f"{alarms_total / hours_total:.3g} per hour" if alarms_total else f"0 in {hours_total:g} h"
     print(f"\nfalse alarms: {rate}\n")
     print("| setpoint | change from 3000 s | seed | first flag after it [s] | test | flags before it |")
@@ -175,7 +177,7 @@ def main() -> int:
     cases = [("sine", name, int(seed)) for name in CHANGES for seed in args.change_seeds.split(",")] + [
         ("two cosines", "load step 2 N", 1), ("held random levels", "load step 2 N", 1)]
     for kind, name, seed in cases:
-        alarms, _, _, _ = run(model, kinds[kind], CHANGES[name], CHANGE_S + AFTER_CHANGE_S, seed, test)
+        alarms, *_ = run(model, kinds[kind], CHANGES[name], CHANGE_S + AFTER_CHANGE_S, seed, test)
         flagged = [(when, by) for when, by in alarms if when >= CHANGE_S]
         early = len(alarms) - len(flagged)
         delay, by = (f"{flagged[0][0] - CHANGE_S:.0f}", flagged[0][1]) if flagged else (

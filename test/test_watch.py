@@ -7,7 +7,7 @@ import pytest
 from test_two_wire import example_model
 
 from sma_stage.errors import InputError
-from sma_stage.identify.watch import CusumOfWindows, DriftTest, ModelWatch, RecentRecord
+from sma_stage.identify.watch import CusumOfWindows, DriftTest, ModelWatch, RecentRecord, _nearest_kept
 
 
 def windows_to_alarm(levels: np.ndarray, test: DriftTest, held_out: float | None = None) -> list[int]:
@@ -131,6 +131,14 @@ def test_a_steady_shift_under_the_size_tests_allowance_is_flagged_by_the_mean_wi
     assert 1500.0 <= when <= 1620.0
     assert watch.path_statistic <= FAST.shift_threshold and not watch.cusum.drift, "the size and level did not trip"
     assert 0.0 < watch.held_out_bias_m < 0.5e-6
+
+
+def test_the_calibrations_held_out_comparison_keeps_as_many_neighbours_as_a_judged_sample_gets():
+    """Each remembered sample is compared with its nearest samples of the other passes, as many as a new sample is
+    compared with (PATH_NEIGHBOURS), not with every one within the radius: those reach further along the path."""
+    index = np.array([[3, 9, 1, 9, 2], [9, 9, 0, 4, 9]])
+    np.testing.assert_array_equal(_nearest_kept(index, 9, 2), [[3, 1], [0, 4]])
+    np.testing.assert_array_equal(_nearest_kept(index, 9, 3), [[3, 1, 2], [0, 4, 9]])
 
 
 def test_a_path_never_retraced_is_not_judged_and_gives_no_alarm():

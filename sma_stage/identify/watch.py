@@ -19,8 +19,8 @@ started where the watch started it, settles onto the stage's state):
   of a fraction of the model's own error where the stage revisits ground it covered twice while calibrating;
   elsewhere it does not judge (`coverage`). Beside the innovations' size it follows their mean: per judged window,
   b = |mean innovation| / sigma, sigma the largest of: what the passes' variance and the noise give a window's
-  mean; the RMS of the calibration windows' mean innovations, each remembered sample compared with the other
-  passes only (how far a window's mean wanders with nothing changed, measured); BIAS_FLOOR r0. Then
+  mean; the RMS of the calibration windows' mean innovations, each remembered sample compared with its nearest
+  of the other passes only (how far a window's mean wanders with nothing changed, measured); BIAS_FLOOR r0. Then
   S_b = max(0, S_b + b - bias_allowance) (capped as the size's); drift while S_b > bias_threshold. It sees a
   change small against the model's error but steady (an ambient drift of a fraction of a kelvin) that the size,
   which counts anything under shift_allowance r0 as no change, does not.
@@ -250,14 +250,15 @@ class PathMemory:
 
     def held_out_window_means(self, window_s: float, radius: float, gap_s: float, tolerance_m: float,
                               min_coverage: float) -> np.ndarray:
-        """The mean innovation [m] of each window_s [s] of the remembered samples, each compared with the other passes
-        only (the samples within gap_s of it left out): what a window's mean innovation does with nothing changed.
+        """The mean innovation [m] of each window_s [s] of the remembered samples, each compared with its PATH_NEIGHBOURS
+        nearest of the other passes (the samples within gap_s of it left out), as a judged sample is compared with
+        the memory: what a window's mean innovation does with nothing changed.
         Windows with fewer than MIN_JUDGED or min_coverage of their samples compared are left out."""
         samples = self._times.size
         _, index = self._tree.query(self._tree.data, k=2 * PATH_NEIGHBOURS, distance_upper_bound=radius)
         found = index < samples
         own_pass = np.abs(self._times[np.where(found, index, 0)] - self._times[:, None]) <= gap_s
-        index = np.where(found & ~own_pass, index, samples)
+        index = _nearest_kept(np.where(found & ~own_pass, index, samples), samples, PATH_NEIGHBOURS)
         reference, spread = np.empty(samples), np.empty(samples)
         _revisits(index, self._times, self._residuals, gap_s, tolerance_m, MIN_PASSES, reference, spread)
         innovation = self._residuals - reference
@@ -269,6 +270,12 @@ class PathMemory:
             if compared.size >= MIN_JUDGED and compared.size >= min_coverage * values.size:
                 means.append(float(np.mean(compared)))
         return np.array(means)
+
+
+def _nearest_kept(index: np.ndarray, missing: int, count: int) -> np.ndarray:
+    """Per row of neighbour indices (nearest first, `missing` where left out), the first `count` not left out."""
+    order = np.argsort(index == missing, axis=1, kind="stable")[:, :count]
+    return np.take_along_axis(index, order, axis=1)
 
 
 def load_kernels(model: object) -> None:
@@ -358,7 +365,8 @@ class ModelWatch:
         self._window: _Window | None = None
         self.last_window_rms: float | None = None
         self.last_innovation_rms: float | None = None
-        self.last_bias_z: float | None = None  # the last judged window's |mean innovation| in its standard errors
+        self.last_bias_m: float | None = None  # the last judged window's mean innovation [m]
+        self.last_bias_z: float | None = None  # ... its magnitude in its standard errors
         self.held_out_bias_m: float | None = None  # a window's mean innovation with nothing changed, RMS [m]
         self.samples = 0
 
@@ -461,14 +469,15 @@ class ModelWatch:
         step = min(excess / reference - self.test.shift_allowance, self.test.shift_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.path_statistic = max(0.0, self.path_statistic + step)
         mean_variance = mean_spread + self.memory.noise_m**2 / count
-        self.last_bias_z = abs(float(np.mean(innovations))) / math.sqrt(
+        self.last_bias_m = float(np.mean(innovations))
+        self.last_bias_z = abs(self.last_bias_m) / math.sqrt(
             max(mean_variance, self._held_out_bias(reference) ** 2, (BIAS_FLOOR * reference) ** 2))
         step = min(self.last_bias_z - self.test.bias_allowance, self.test.bias_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.bias_statistic = max(0.0, self.bias_statistic + step)
 
     def _held_out_bias(self, reference: float) -> float:
-        """The RMS [m] of the calibration windows' mean innovations, each sample compared with the other passes
-        (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's mean wanders with nothing changed."""
+        """The RMS [m] of the calibration windows' mean innovations, each sample compared with its nearest of the
+        other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's mean wanders with nothing changed."""
         if self.held_out_bias_m is None:
             means = self.memory.held_out_window_means(self.test.window_s, self.test.path_radius, PASS_GAP_S,
                                                       PASS_AGREEMENT * reference, self.test.min_coverage)
