@@ -82,7 +82,7 @@ def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, 
         ) -> tuple[list[tuple[float, str]], float, float, float, float]:
     """((time [s], test) of each drift flag, restarting the tests after each; the tracking RMS [m]; the path test's
     mean coverage of the windows it looked at; the watch's mean cost per sample [us]; how far a window's mean
-    innovation wandered while calibrating, the bias test's scale [m]). The watch is fed the record CHUNK_STEPS
+    innovation wandered while calibrating, bias_held_out_m [m]). The watch is fed the record CHUNK_STEPS
     samples at a time, as it would be while the stage runs (it only looks back)."""
     rows = record(model, setpoint, effects, seconds, seed)
     watch = ModelWatch(model, test)
@@ -160,7 +160,7 @@ def main() -> int:
     print(f"model: {identified.models[1].name}, held-out RMS {model.metadata.get('held_out_rms', float('nan')):.3g} m, "
           f"stroke {stroke:.4g} m; watch settings {test}; PI loop at {CONTROL_STEP_S:g} s\n")
     print("| setpoint | seed | simulated h | false alarms | tracking RMS % of stroke | path test coverage | "
-          "watch cost per sample [us] | bias test's scale [um] |")
+          "watch cost per sample [us] | bias_held_out_m [um] |")
     print("|---|---|---|---|---|---|---|---|")
     runs = [("sine", int(seed)) for seed in args.seeds.split(",")] + [("two cosines", 0), ("held random levels", 0)]
     alarms_total, hours_total = 0, 0.0

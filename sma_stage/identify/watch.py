@@ -89,7 +89,8 @@ class DriftTest:
             if not 0.0 <= getattr(self, name) < math.inf:
                 raise InputError(f"{name} must be at least 0 and finite, got {getattr(self, name)}")
         taus = self.path_time_constants_s
-        if not taus or not all(isinstance(tau, (int, float)) and not isinstance(tau, bool) and 0.0 < tau < math.inf for tau in taus):
+        if not taus or not all(isinstance(tau, (int, float)) and not isinstance(tau, bool) and 0.0 < tau < math.inf
+                               for tau in taus):
             raise InputError(f"path_time_constants_s must be one or more positive finite times [s], got {taus!r}")
         if not 0.0 < self.min_coverage <= 1.0:
             raise InputError(f"min_coverage must be in (0, 1], got {self.min_coverage}")
@@ -250,9 +251,9 @@ class PathMemory:
 
     def held_out_window_means(self, window_s: float, radius: float, gap_s: float, tolerance_m: float,
                               min_coverage: float) -> np.ndarray:
-        """The mean innovation [m] of each window_s [s] of the remembered samples, each compared with its PATH_NEIGHBOURS
-        nearest of the other passes (the samples within gap_s of it left out), as a judged sample is compared with
-        the memory: what a window's mean innovation does with nothing changed.
+        """The mean innovation [m] of each window_s [s] of the remembered samples, each compared with its
+        PATH_NEIGHBOURS nearest of the other passes (the samples within gap_s of it left out), as a judged sample
+        is compared with the memory: what a window's mean innovation does with nothing changed.
         Windows with fewer than MIN_JUDGED or min_coverage of their samples compared are left out."""
         samples = self._times.size
         _, index = self._tree.query(self._tree.data, k=2 * PATH_NEIGHBOURS, distance_upper_bound=radius)
@@ -365,8 +366,7 @@ class ModelWatch:
         self._window: _Window | None = None
         self.last_window_rms: float | None = None
         self.last_innovation_rms: float | None = None
-        self.last_bias_m: float | None = None  # the last judged window's mean innovation [m]
-        self.last_bias_z: float | None = None  # ... its magnitude in its standard errors
+        self.last_bias_z: float | None = None  # the last judged window's |mean innovation| in its standard errors
         self.held_out_bias_m: float | None = None  # a window's mean innovation with nothing changed, RMS [m]
         self.samples = 0
 
@@ -413,7 +413,8 @@ class ModelWatch:
         if learning.any():
             self.memory.remember(t_s[learning], features[learning], residual[learning])
         if t_s[-1] >= end and not self.memory.build():
-            self.memory = PathMemory(self.test.path_time_constants_s)  # too little came to remember: learn again from here
+            # too little came to remember: learn again from here
+            self.memory = PathMemory(self.test.path_time_constants_s)
             self._started_s = float(t_s[-1]) - self.test.warmup_windows * self.test.window_s
         return innovation, spread, looked_at
 
@@ -469,15 +470,15 @@ class ModelWatch:
         step = min(excess / reference - self.test.shift_allowance, self.test.shift_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.path_statistic = max(0.0, self.path_statistic + step)
         mean_variance = mean_spread + self.memory.noise_m**2 / count
-        self.last_bias_m = float(np.mean(innovations))
-        self.last_bias_z = abs(self.last_bias_m) / math.sqrt(
+        self.last_bias_z = abs(float(np.mean(innovations))) / math.sqrt(
             max(mean_variance, self._held_out_bias(reference) ** 2, (BIAS_FLOOR * reference) ** 2))
         step = min(self.last_bias_z - self.test.bias_allowance, self.test.bias_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.bias_statistic = max(0.0, self.bias_statistic + step)
 
     def _held_out_bias(self, reference: float) -> float:
         """The RMS [m] of the calibration windows' mean innovations, each sample compared with its nearest of the
-        other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's mean wanders with nothing changed."""
+        other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's mean wanders with
+        nothing changed."""
         if self.held_out_bias_m is None:
             means = self.memory.held_out_window_means(self.test.window_s, self.test.path_radius, PASS_GAP_S,
                                                       PASS_AGREEMENT * reference, self.test.min_coverage)
