@@ -2,8 +2,10 @@
 
 Each wire has its own temperature and its own hysteresis in it; the stage's output is a hysteresis of what the
 two wires' transformations pull together. Per wire w (a: heated by u > 0, b: by u < 0, the relay):
-- temperature, in A of heating: tau_w dtheta_w/dt = drive_w - theta_w, drive_a = u^2 / u_ref for u > 0 (else 0),
-  drive_b the same for u < 0 (u_ref = heating_reference_a): theta settles at the current's Joule heating;
+- temperature, in A of heating: tau_w dtheta_w/dt = drive_w - theta_w, drive_a = (u^2 / u_ref) (1 - d xhat_a) for
+  u > 0 (else 0), drive_b the same for u < 0 (u_ref = heating_reference_a): theta settles at the current's Joule
+  heating, which falls as the wire transforms (austenite conducts better than martensite: d = resistance_drop,
+  xhat_w the wire's transformed share x_w / sum_j p_wj at the start of the step);
 - transformation: what the wire sees is its temperature shifted by the stress the stage's position puts on it
   (Clausius-Clapeyron), seen_a = theta_a - coupling_a y, seen_b = theta_b + coupling_b y; the transformed
   fraction x_w = sum_j p_wj sigma((P_rj[seen_w] - centre_w) / width_w), P_r the play operator of threshold
@@ -32,10 +34,11 @@ from sma_stage.model.held import HeldCurrentModel, HeldState, finite_value
 KIND = "two_wire"
 SCALARS = ("tau_a_s", "tau_b_s", "heating_reference_a", "coupling_a", "coupling_b", "centre_a", "centre_b",
            "width_a", "width_b", "hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "offset",
-           "output_threshold")
+           "output_threshold", "resistance_drop")
 WEIGHTS = ("weights_a", "weights_b", "output_weights")
 POSITIVE = ("tau_a_s", "tau_b_s", "heating_reference_a", "width_a", "width_b")
-NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold")
+NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold", "resistance_drop")
+DEFAULTS = {"resistance_drop": 0.0}  # what a model file written before the parameter existed was fitted with
 MAX_OPERATORS = 50
 HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hysteresis in it, the output a\n"
           "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
@@ -46,8 +49,8 @@ CURRENT_TOLERANCE = 1e-14  # a bracket narrower than this (relative) ends it
 
 @dataclass(frozen=True)
 class TwoWireParameters:
-    """The model's scalars (units: s, A of heating, output unit; couplings in A per output unit) and its three
-    weight vectors (dimensionless, >= 0)."""
+    """The model's scalars (units: s, A of heating, output unit; couplings in A per output unit; resistance_drop
+    dimensionless, 0 to 1, 0 when a model file has none) and its three weight vectors (dimensionless, >= 0)."""
 
     values: Mapping[str, float]
     weights_a: tuple[float, ...]
@@ -55,7 +58,7 @@ class TwoWireParameters:
     output_weights: tuple[float, ...]
 
     def __post_init__(self) -> None:
-        values = dict(self.values)
+        values = {**DEFAULTS, **self.values}
         missing = [name for name in SCALARS if name not in values]
         unknown = [str(name) for name in values if name not in SCALARS]
         if missing:
@@ -69,6 +72,9 @@ class TwoWireParameters:
         for name in NON_NEGATIVE:
             if values[name] < 0.0:
                 raise InputError(f"two-wire parameter {name} must be >= 0, got {values[name]:g}")
+        if values["resistance_drop"] >= 1.0:
+            raise InputError(f"two-wire parameter resistance_drop must be < 1 (a share of the cold wire's "
+                             f"resistance), got {values['resistance_drop']:g}")
         object.__setattr__(self, "values", values)
         for name in WEIGHTS:
             weights = getattr(self, name)
@@ -152,6 +158,17 @@ def _play(state: float, value: float, threshold: float) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
+def _transformed_share(state: np.ndarray, p: np.ndarray, n: int, wire: int) -> float:
+    """The wire's transformed fraction as a share of its full transformation (0 to 1), from its plays now."""
+    total, transformed = 0.0, 0.0
+    for j in range(n):
+        weight = p[16 + wire * n + j]
+        total += weight
+        transformed += weight * _sigma((state[2 + wire * n + j] - p[5 + wire]) / p[7 + wire])
+    return transformed / total if total > 0.0 else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
 def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float) -> float:
     """Hold `current` [A] for step_s [s] from `state` (changed in place); the output at the end."""
     reference = p[2]
@@ -160,6 +177,8 @@ def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
     pull = 0.0
     for wire in range(2):
         drive = heating if (current > 0.0) == (wire == 0) and current != 0.0 else 0.0
+        if drive > 0.0 and p[15] > 0.0:
+            drive *= 1.0 - p[15] * _transformed_share(state, p, n, wire)
         state[wire] = drive + (state[wire] - drive) * math.exp(-step_s / p[wire])
         sign = 1.0 if wire == 0 else -1.0
         seen = state[wire] - sign * p[3 + wire] * y_before
@@ -169,14 +188,14 @@ def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
             threshold = hysteresis * j / (n - 1) if n > 1 else 0.0
             index = 2 + wire * n + j
             state[index] = _play(state[index], seen, threshold)
-            fraction += p[15 + wire * n + j] * _sigma((state[index] - centre) / width)
+            fraction += p[16 + wire * n + j] * _sigma((state[index] - centre) / width)
         pull += sign * p[11 + wire] * fraction
     y = p[13]
     for k in range(m):
         threshold = p[14] * k / (m - 1) if m > 1 else 0.0
         index = 2 + 2 * n + k
         state[index] = _play(state[index], pull, threshold)
-        y += p[15 + 2 * n + k] * state[index]
+        y += p[16 + 2 * n + k] * state[index]
     state[2 + 2 * n + m] = y
     return y
 
@@ -195,12 +214,12 @@ def _rest(p: np.ndarray, n: int, m: int, state: np.ndarray) -> None:
             fraction = 0.0
             for j in range(n):
                 state[2 + wire * n + j] = seen
-                fraction += p[15 + wire * n + j] * _sigma((seen - p[5 + wire]) / p[7 + wire])
+                fraction += p[16 + wire * n + j] * _sigma((seen - p[5 + wire]) / p[7 + wire])
             pull += sign * p[11 + wire] * fraction
         y_new = p[13]
         for k in range(m):
             state[2 + 2 * n + k] = pull
-            y_new += p[15 + 2 * n + k] * pull
+            y_new += p[16 + 2 * n + k] * pull
         if abs(y_new - y) <= 1e-15 * (1.0 + abs(y)):
             y = y_new
             break
