@@ -256,10 +256,20 @@ def main() -> None:
     parser.add_argument("--alternatives", action="store_true",
                         help="the two-wire model's alternatives instead: shared or per-wire shapes, identified on "
                              "the paper's or the designed excitation")
+    parser.add_argument("--seeds", default=None,
+                        help="with --alternatives: these noise and start seeds (comma-separated) in place of --seed, "
+                             "and a summary over them")
+    parser.add_argument("--shapes", default="shared,per_wire", help="with --alternatives: the shapes compared")
+    parser.add_argument("--told-apart", action="store_true",
+                        help="with --alternatives: the starts told apart on the paper's validation record, as the "
+                             "diagnosis does (else the best fit of the identification record)")
+    parser.add_argument("--output-operators", type=int, default=None,
+                        help="with --alternatives: the output layer's play operators (1: no output hysteresis)")
     args = parser.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
     if args.alternatives:
-        alternatives(args.variants.split(","), args.seed)
+        seeds = [int(seed) for seed in args.seeds.split(",")] if args.seeds else [args.seed]
+        alternatives(args.variants.split(","), seeds, args.shapes.split(","), args.told_apart, args.output_operators)
         return
     from sma_stage.cli import main as gpi_tool
     from sma_stage.identify.metrics import error_metrics
@@ -313,32 +323,47 @@ def third_record(stage: Stage, seed: int = 0) -> tuple[np.ndarray, np.ndarray, n
     return t, current, simulate(current, stage, seed + 9)
 
 
-def alternatives(variants: list[str], seed: int) -> None:
+def alternatives(variants: list[str], seeds: list[int], shapes_compared: list[str], told_apart: bool = False,
+                 output_operators: int | None = None) -> None:
     """The two-wire model identified with shared or per-wire transformation shapes, on the paper's identification
     signal or the designed excitation, validated on the paper's validation signal and on a second designed record
-    (another draw); a table row each."""
+    (another draw); a table row each, then the mean and worst over the variants and seeds."""
     from sma_stage.identify.metrics import error_metrics
-    from sma_stage.identify.two_wire import fit_two_wire
+    from sma_stage.identify.two_wire import OUTPUT_OPERATORS, HeldOut, fit_two_wire
     from sma_stage.signals import designed_identification_signal
 
-    print("| variant | identified on | shapes | parameters | BIC | identification RMS % | paper validation RMS / "
-          "max % | designed validation RMS / max % | seconds |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for name in variants:
-        stage = VARIANTS[name]
-        made = records(stage, seed)
-        t = made["identification"][0]
-        designed = designed_identification_signal(t)
-        identified_on = {"paper": made["identification"], "designed": (t, designed, simulate(designed, stage, seed + 5))}
-        second = third_record(stage, seed)
-        for record, (t_i, u_i, y_i) in identified_on.items():
-            for shapes in ("shared", "per_wire"):
-                found = fit_two_wire(t_i, u_i, y_i, shapes=shapes)
-                model = found.model.without_state()
-                scores = [error_metrics(y, model.predict(t_v, u_v)) for t_v, u_v, y in (made["validation"], second)]
-                print(f"| {name} | {record} | {shapes} | {found.parameter_count} | {found.bic:.0f} | "
-                      f"{found.errors.rms_pct:.2f} | {scores[0].rms_pct:.2f} / {scores[0].max_pct:.1f} | "
-                      f"{scores[1].rms_pct:.2f} / {scores[1].max_pct:.1f} | {found.seconds:.0f} |", flush=True)
+    print("| variant | seed | identified on | shapes | parameters | BIC | identification RMS % | paper validation "
+          "RMS / max % | designed validation RMS / max % | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    summary: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
+    for seed in seeds:
+        for name in variants:
+            stage = VARIANTS[name]
+            made = records(stage, seed)
+            t = made["identification"][0]
+            designed = designed_identification_signal(t)
+            identified_on = {"paper": made["identification"],
+                             "designed": (t, designed, simulate(designed, stage, seed + 5))}
+            second = third_record(stage, seed)
+            held_out = HeldOut(*made["validation"]) if told_apart else None
+            for record, (t_i, u_i, y_i) in identified_on.items():
+                for shapes in shapes_compared:
+                    found = fit_two_wire(t_i, u_i, y_i, output_operators=output_operators or OUTPUT_OPERATORS,
+                                         seed=seed, shapes=shapes, held_out=held_out)
+                    model = found.model.without_state()
+                    scores = [error_metrics(y, model.predict(t_v, u_v)) for t_v, u_v, y in (made["validation"], second)]
+                    summary.setdefault((record, shapes), []).append((scores[0].rms_pct, scores[0].max_pct,
+                                                                    scores[1].rms_pct))
+                    print(f"| {name} | {seed} | {record} | {shapes} | {found.parameter_count} | {found.bic:.0f} | "
+                          f"{found.errors.rms_pct:.2f} | {scores[0].rms_pct:.2f} / {scores[0].max_pct:.1f} | "
+                          f"{scores[1].rms_pct:.2f} / {scores[1].max_pct:.1f} | {found.seconds:.0f} |", flush=True)
+    print("\n| identified on | shapes | records | paper validation RMS %: mean, worst | over 2 % | max over 10 % | "
+          "designed validation RMS %: mean, worst |")
+    print("|---|---|---|---|---|---|---|")
+    for (record, shapes), rows in summary.items():
+        rms, largest, second_rms = (np.array(column) for column in zip(*rows, strict=True))
+        print(f"| {record} | {shapes} | {rms.size} | {rms.mean():.2f}, {rms.max():.2f} | {np.sum(rms > 2.0)} | "
+              f"{np.sum(largest > 10.0)} | {second_rms.mean():.2f}, {second_rms.max():.2f} |")
 
 
 if __name__ == "__main__":
