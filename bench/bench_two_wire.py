@@ -32,7 +32,7 @@ STAGE_GPI = GPIParameters(a1=0.5e-3, a2=0.6, a3=0.1, a4=0.0, a5=0.5e-3, a6=0.6, 
 TWO_WIRE = TwoWireModel(TwoWireParameters(
     {"tau_a_s": 3.5, "tau_b_s": 3.6, "heating_reference_a": 4.9, "coupling_a": 2500.0, "coupling_b": 4300.0,
      "centre_a": 1.9, "centre_b": 1.5, "width_a": 1.36, "width_b": 1.05, "hysteresis_a": 1.26, "hysteresis_b": 0.96,
-     "stroke_a": 4.2e-4, "stroke_b": 3.1e-4, "offset": -1.6e-5, "output_threshold": 1.4e-4},
+     "stroke_a": 4.2e-4, "stroke_b": 3.1e-4, "offset": -1.6e-5, "output_threshold": 1.4e-4, "resistance_drop": 0.4},
     (0.26, 1.13, 0.0, 0.14), (0.21, 1.39, 0.0, 0.1), (0.3, 0.37, 0.34, 0.63, 0.18)))
 
 

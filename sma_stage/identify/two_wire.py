@@ -2,10 +2,10 @@
 squares (scipy's trust-region reflective) on the output error, from several starts searched on a thinned copy of
 the record, the best polished on all of it. Plain arrays in, a result object out.
 
-`shapes`: "per_wire" (the default) gives each wire its own transformation shape (width, hysteresis width,
-weights) beside its own time constant, centre, coupling and stroke; "shared" ties the shapes of the two wires.
-On the second physical stage, identified on the paper's signal over 3 seeds x 4 variants, per-wire shapes
-validated better on average and in the worst case (docs/identification.md, section 6, gives the figures).
+`shapes`: "shared" (the default) gives both wires one transformation shape (width, hysteresis width, weights),
+each wire keeping its own time constant, centre, coupling and stroke; "per_wire" frees them all. Per-wire shapes
+validated a little better on the second physical stage, and took ten times as long on the stage simulator's
+20,000-sample record (docs/identification.md, section 6, gives the figures).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ class TwoWireFit:
 
 def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
-                 output_unit: str = "m", shapes: str = "per_wire", pool: Workers | None = None,
+                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None,
                  held_out: HeldOut | None = None) -> TwoWireFit:
     """The two-wire model that best predicts y [output unit] from u [A] at times t [s], the record starting
     from a stage at rest. InputError (one line) when the record cannot identify it. pool: its processes search
@@ -93,7 +93,7 @@ class TwoWireFitting:
 
     def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
-                 output_unit: str = "m", shapes: str = "per_wire", pool: Workers | None = None) -> None:
+                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None) -> None:
         self.started = time.perf_counter()
         t, u = _record(t, u)
         u, y = check_data(u, y)
@@ -193,7 +193,7 @@ class _Problem:
     current), residuals in units of the output's span."""
 
     def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int,
-                 output_operators: int, shapes: str = "per_wire") -> None:
+                 output_operators: int, shapes: str = "shared") -> None:
         self.t, self.u, self.y = t, u, y
         self.n, self.m = wire_operators, output_operators
         self.reference = float(np.max(np.abs(u)))
