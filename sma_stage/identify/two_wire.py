@@ -193,7 +193,7 @@ class _Problem:
     current), residuals in units of the output's span."""
 
     def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int,
-                 output_operators: int, shapes: str = "shared") -> None:
+                 output_operators: int, shapes: str = "per_wire") -> None:
         self.t, self.u, self.y = t, u, y
         self.n, self.m = wire_operators, output_operators
         self.reference = float(np.max(np.abs(u)))

@@ -39,6 +39,8 @@ WEIGHTS = ("weights_a", "weights_b", "output_weights")
 POSITIVE = ("tau_a_s", "tau_b_s", "heating_reference_a", "width_a", "width_b")
 NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold", "resistance_drop")
 DEFAULTS = {"resistance_drop": 0.0}  # what a model file written before the parameter existed was fitted with
+FIRST_WEIGHT = len(SCALARS)  # where the weights start in the kernel's parameter vector
+RESISTANCE_DROP = SCALARS.index("resistance_drop")
 MAX_OPERATORS = 50
 HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hysteresis in it, the output a\n"
           "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
@@ -162,7 +164,7 @@ def _transformed_share(state: np.ndarray, p: np.ndarray, n: int, wire: int) -> f
     """The wire's transformed fraction as a share of its full transformation (0 to 1), from its plays now."""
     total, transformed = 0.0, 0.0
     for j in range(n):
-        weight = p[16 + wire * n + j]
+        weight = p[FIRST_WEIGHT + wire * n + j]
         total += weight
         transformed += weight * _sigma((state[2 + wire * n + j] - p[5 + wire]) / p[7 + wire])
     return transformed / total if total > 0.0 else 0.0
@@ -177,8 +179,8 @@ def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
     pull = 0.0
     for wire in range(2):
         drive = heating if (current > 0.0) == (wire == 0) and current != 0.0 else 0.0
-        if drive > 0.0 and p[15] > 0.0:
-            drive *= 1.0 - p[15] * _transformed_share(state, p, n, wire)
+        if drive > 0.0 and p[RESISTANCE_DROP] > 0.0:
+            drive *= 1.0 - p[RESISTANCE_DROP] * _transformed_share(state, p, n, wire)
         state[wire] = drive + (state[wire] - drive) * math.exp(-step_s / p[wire])
         sign = 1.0 if wire == 0 else -1.0
         seen = state[wire] - sign * p[3 + wire] * y_before
@@ -188,14 +190,14 @@ def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
             threshold = hysteresis * j / (n - 1) if n > 1 else 0.0
             index = 2 + wire * n + j
             state[index] = _play(state[index], seen, threshold)
-            fraction += p[16 + wire * n + j] * _sigma((state[index] - centre) / width)
+            fraction += p[FIRST_WEIGHT + wire * n + j] * _sigma((state[index] - centre) / width)
         pull += sign * p[11 + wire] * fraction
     y = p[13]
     for k in range(m):
         threshold = p[14] * k / (m - 1) if m > 1 else 0.0
         index = 2 + 2 * n + k
         state[index] = _play(state[index], pull, threshold)
-        y += p[16 + 2 * n + k] * state[index]
+        y += p[FIRST_WEIGHT + 2 * n + k] * state[index]
     state[2 + 2 * n + m] = y
     return y
 
@@ -214,12 +216,12 @@ def _rest(p: np.ndarray, n: int, m: int, state: np.ndarray) -> None:
             fraction = 0.0
             for j in range(n):
                 state[2 + wire * n + j] = seen
-                fraction += p[16 + wire * n + j] * _sigma((seen - p[5 + wire]) / p[7 + wire])
+                fraction += p[FIRST_WEIGHT + wire * n + j] * _sigma((seen - p[5 + wire]) / p[7 + wire])
             pull += sign * p[11 + wire] * fraction
         y_new = p[13]
         for k in range(m):
             state[2 + 2 * n + k] = pull
-            y_new += p[16 + 2 * n + k] * pull
+            y_new += p[FIRST_WEIGHT + 2 * n + k] * pull
         if abs(y_new - y) <= 1e-15 * (1.0 + abs(y)):
             y = y_new
             break
