@@ -267,9 +267,26 @@ def main() -> None:
                         help="with --alternatives: the output layer's play operators (1: no output hysteresis)")
     args = parser.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    unknown = [name for name in args.variants.split(",") if name not in VARIANTS]
+    if unknown:
+        parser.error(f"unknown variant {unknown[0]!r} (known: {', '.join(VARIANTS)})")
     if args.alternatives:
-        seeds = [int(seed) for seed in args.seeds.split(",")] if args.seeds else [args.seed]
-        alternatives(args.variants.split(","), seeds, args.shapes.split(","), args.told_apart, args.output_operators)
+        from sma_stage.errors import InputError
+        from sma_stage.identify.two_wire import SHAPES
+
+        try:
+            seeds = [int(seed) for seed in args.seeds.split(",")] if args.seeds else [args.seed]
+        except ValueError:
+            parser.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
+        if args.output_operators is not None and not 1 <= args.output_operators <= 50:
+            parser.error(f"--output-operators must be from 1 to 50, got {args.output_operators}")
+        shapes = args.shapes.split(",")
+        if not set(shapes) <= set(SHAPES):
+            parser.error(f"--shapes must be among {', '.join(SHAPES)}, got {args.shapes!r}")
+        try:
+            alternatives(args.variants.split(","), seeds, shapes, args.told_apart, args.output_operators)
+        except InputError as error:
+            parser.error(str(error))
         return
     from sma_stage.cli import main as gpi_tool
     from sma_stage.identify.metrics import error_metrics
@@ -348,7 +365,7 @@ def alternatives(variants: list[str], seeds: list[int], shapes_compared: list[st
             held_out = HeldOut(*made["validation"]) if told_apart else None
             for record, (t_i, u_i, y_i) in identified_on.items():
                 for shapes in shapes_compared:
-                    found = fit_two_wire(t_i, u_i, y_i, output_operators=output_operators or OUTPUT_OPERATORS,
+                    found = fit_two_wire(t_i, u_i, y_i, output_operators=OUTPUT_OPERATORS if output_operators is None else output_operators,
                                          seed=seed, shapes=shapes, held_out=held_out)
                     model = found.model.without_state()
                     scores = [error_metrics(y, model.predict(t_v, u_v)) for t_v, u_v, y in (made["validation"], second)]

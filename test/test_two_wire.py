@@ -156,6 +156,23 @@ def test_the_gpi_model_file_still_reads_as_a_gpi(tmp_path):
         load_model_file(tmp_path / "two_wire.yaml")
 
 
+@pytest.mark.parametrize(("arguments", "message"), [
+    (["--variants", "nope"], "unknown variant 'nope'"),
+    (["--alternatives", "--seeds", "0,x"], "--seeds must be comma-separated integers"),
+    (["--alternatives", "--shapes", "odd"], "--shapes must be among"),
+    (["--alternatives", "--output-operators", "0"], "--output-operators must be from 1 to 50"),
+])
+def test_the_second_stage_script_refuses_bad_arguments_in_one_line(arguments, message):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).with_name("antagonistic_plant.py")
+    run = subprocess.run([sys.executable, str(script), *arguments], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and run.stdout == ""
+    assert message in run.stderr.strip().splitlines()[-1] and "Traceback" not in run.stderr
+
+
 def test_a_record_heating_one_wire_only_is_refused():
     t = np.arange(0.0, 200.0, 0.2)
     u = 4.0 * np.abs(np.sin(t / 20.0))
