@@ -340,6 +340,18 @@ def third_record(stage: Stage, seed: int = 0) -> tuple[np.ndarray, np.ndarray, n
     return t, current, simulate(current, stage, seed + 9)
 
 
+def alternative_records(stage: Stage, seed: int) -> tuple[dict[str, tuple[np.ndarray, ...]], tuple[tuple, tuple]]:
+    """`--alternatives`' records of one stage and seed: the two identification records by name (the paper's, the
+    designed excitation) and the two validation records (the paper's, a second designed draw)."""
+    from sma_stage.signals import designed_identification_signal
+
+    made = records(stage, seed)
+    t = made["identification"][0]
+    designed = designed_identification_signal(t)
+    identified_on = {"paper": made["identification"], "designed": (t, designed, simulate(designed, stage, seed + 5))}
+    return identified_on, (made["validation"], third_record(stage, seed))
+
+
 def alternatives(variants: list[str], seeds: list[int], shapes_compared: list[str], told_apart: bool = False,
                  output_operators: int | None = None) -> None:
     """The two-wire model identified with shared or per-wire transformation shapes, on the paper's identification
@@ -347,33 +359,25 @@ def alternatives(variants: list[str], seeds: list[int], shapes_compared: list[st
     (another draw); a table row each, then the mean and worst over the variants and seeds."""
     from sma_stage.identify.metrics import error_metrics
     from sma_stage.identify.two_wire import OUTPUT_OPERATORS, HeldOut, fit_two_wire
-    from sma_stage.signals import designed_identification_signal
 
+    output_operators = OUTPUT_OPERATORS if output_operators is None else output_operators
     print("| variant | seed | identified on | shapes | parameters | BIC | identification RMS % | paper validation "
           "RMS / max % | designed validation RMS / max % | seconds |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     summary: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
-    for seed in seeds:
-        for name in variants:
-            stage = VARIANTS[name]
-            made = records(stage, seed)
-            t = made["identification"][0]
-            designed = designed_identification_signal(t)
-            identified_on = {"paper": made["identification"],
-                             "designed": (t, designed, simulate(designed, stage, seed + 5))}
-            second = third_record(stage, seed)
-            held_out = HeldOut(*made["validation"]) if told_apart else None
-            for record, (t_i, u_i, y_i) in identified_on.items():
-                for shapes in shapes_compared:
-                    found = fit_two_wire(t_i, u_i, y_i, output_operators=OUTPUT_OPERATORS if output_operators is None else output_operators,
-                                         seed=seed, shapes=shapes, held_out=held_out)
-                    model = found.model.without_state()
-                    scores = [error_metrics(y, model.predict(t_v, u_v)) for t_v, u_v, y in (made["validation"], second)]
-                    summary.setdefault((record, shapes), []).append((scores[0].rms_pct, scores[0].max_pct,
-                                                                    scores[1].rms_pct))
-                    print(f"| {name} | {seed} | {record} | {shapes} | {found.parameter_count} | {found.bic:.0f} | "
-                          f"{found.errors.rms_pct:.2f} | {scores[0].rms_pct:.2f} / {scores[0].max_pct:.1f} | "
-                          f"{scores[1].rms_pct:.2f} / {scores[1].max_pct:.1f} | {found.seconds:.0f} |", flush=True)
+    for seed, name in ((seed, name) for seed in seeds for name in variants):
+        identified_on, validations = alternative_records(VARIANTS[name], seed)
+        held_out = HeldOut(*validations[0]) if told_apart else None
+        for (record, (t, u, y)), shapes in ((item, shapes) for item in identified_on.items()
+                                            for shapes in shapes_compared):
+            found = fit_two_wire(t, u, y, output_operators=output_operators, seed=seed, shapes=shapes,
+                                 held_out=held_out)
+            model = found.model.without_state()
+            paper, second = (error_metrics(y_v, model.predict(t_v, u_v)) for t_v, u_v, y_v in validations)
+            summary.setdefault((record, shapes), []).append((paper.rms_pct, paper.max_pct, second.rms_pct))
+            print(f"| {name} | {seed} | {record} | {shapes} | {found.parameter_count} | {found.bic:.0f} | "
+                  f"{found.errors.rms_pct:.2f} | {paper.rms_pct:.2f} / {paper.max_pct:.1f} | "
+                  f"{second.rms_pct:.2f} / {second.max_pct:.1f} | {found.seconds:.0f} |", flush=True)
     print("\n| identified on | shapes | records | paper validation RMS %: mean, worst | over 2 % | max over 10 % | "
           "designed validation RMS %: mean, worst |")
     print("|---|---|---|---|---|---|---|")
