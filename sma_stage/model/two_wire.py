@@ -171,26 +171,51 @@ def _transformed_share(state: np.ndarray, p: np.ndarray, n: int, wire: int) -> f
 
 
 @numba.njit(cache=True, nogil=True)
+def _shares(state: np.ndarray, p: np.ndarray, n: int) -> tuple[float, float]:
+    """Both wires' transformed shares (_transformed_share)."""
+    return _transformed_share(state, p, n, 0), _transformed_share(state, p, n, 1)
+
+
+@numba.njit(cache=True, nogil=True)
 def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float) -> float:
     """Hold `current` [A] for step_s [s] from `state` (changed in place); the output at the end."""
+    heated = 0 if current > 0.0 else 1
+    share = _transformed_share(state, p, n, heated) if current != 0.0 and p[RESISTANCE_DROP] > 0.0 else 0.0
+    return _advance_from(state, p, n, m, current, step_s, share, share)[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _advance_from(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float,
+                  share_a: float, share_b: float) -> tuple[float, float, float]:
+    """_advance given the wires' transformed shares at the step's start (what the last step left); the output
+    at the end and the shares there."""
     reference = p[2]
     heating = current * current / reference
     y_before = state[2 + 2 * n + m]
     pull = 0.0
+    shares = (share_a, share_b)
+    share_a, share_b = 0.0, 0.0
     for wire in range(2):
         drive = heating if (current > 0.0) == (wire == 0) and current != 0.0 else 0.0
         if drive > 0.0 and p[RESISTANCE_DROP] > 0.0:
-            drive *= 1.0 - p[RESISTANCE_DROP] * _transformed_share(state, p, n, wire)
+            drive *= 1.0 - p[RESISTANCE_DROP] * shares[wire]
         state[wire] = drive + (state[wire] - drive) * math.exp(-step_s / p[wire])
         sign = 1.0 if wire == 0 else -1.0
         seen = state[wire] - sign * p[3 + wire] * y_before
         centre, width, hysteresis = p[5 + wire], p[7 + wire], p[9 + wire]
-        fraction = 0.0
+        fraction, total = 0.0, 0.0
         for j in range(n):
             threshold = hysteresis * j / (n - 1) if n > 1 else 0.0
             index = 2 + wire * n + j
             state[index] = _play(state[index], seen, threshold)
-            fraction += p[FIRST_WEIGHT + wire * n + j] * _sigma((state[index] - centre) / width)
+            weight = p[FIRST_WEIGHT + wire * n + j]
+            total += weight
+            fraction += weight * _sigma((state[index] - centre) / width)
+        share = fraction / total if total > 0.0 else 0.0
+        if wire == 0:
+            share_a = share
+        else:
+            share_b = share
         pull += sign * p[11 + wire] * fraction
     y = p[13]
     for k in range(m):
@@ -199,7 +224,7 @@ def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
         state[index] = _play(state[index], pull, threshold)
         y += p[FIRST_WEIGHT + 2 * n + k] * state[index]
     state[2 + 2 * n + m] = y
-    return y
+    return y, share_a, share_b
 
 
 @numba.njit(cache=True, nogil=True)
@@ -234,20 +259,22 @@ def _run(t: np.ndarray, u: np.ndarray, p: np.ndarray, n: int, m: int, state: np.
          first_step_s: float, out: np.ndarray) -> None:
     """Outputs at each sample of a record (see the module's sampling rule): `held` is the current applied
     before the first sample, for first_step_s (0: the state is at the first sample already)."""
+    share_a, share_b = _shares(state, p, n)
     if first_step_s > 0.0:
-        out[0] = _advance(state, p, n, m, held, first_step_s)
+        out[0], share_a, share_b = _advance_from(state, p, n, m, held, first_step_s, share_a, share_b)
     else:
         out[0] = state[2 + 2 * n + m]
     for k in range(1, t.size):
-        out[k] = _advance(state, p, n, m, u[k - 1], t[k] - t[k - 1])
+        out[k], share_a, share_b = _advance_from(state, p, n, m, u[k - 1], t[k] - t[k - 1], share_a, share_b)
 
 
 @numba.njit(cache=True, nogil=True)
 def _held(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float, target: float,
-          trial: np.ndarray) -> float:
-    """How far above target the output ends when current is held for step_s from state (state unchanged)."""
+          trial: np.ndarray, share_a: float, share_b: float) -> float:
+    """How far above target the output ends when current is held for step_s from state (state unchanged),
+    share_a and share_b the wires' transformed shares in state."""
     trial[:] = state
-    return _advance(trial, p, n, m, current, step_s) - target
+    return _advance_from(trial, p, n, m, current, step_s, share_a, share_b)[0] - target
 
 
 @numba.njit(cache=True, nogil=True)
@@ -257,10 +284,11 @@ def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float
     at the end of the step rises with the current over the whole range (u < 0 heats wire b less as u rises,
     u > 0 heats wire a more), so a bracketing search finds it (regula falsi, Illinois variant, bisecting when a
     step would leave the bracket); the range's end when the target is out of reach."""
-    above_high = _held(state, p, n, m, high, step_s, target, trial)
+    share_a, share_b = _shares(state, p, n)
+    above_high = _held(state, p, n, m, high, step_s, target, trial, share_a, share_b)
     if above_high <= 0.0:
         return high
-    above_low = _held(state, p, n, m, low, step_s, target, trial)
+    above_low = _held(state, p, n, m, low, step_s, target, trial, share_a, share_b)
     if above_low >= 0.0:
         return low
     close = OUTPUT_TOLERANCE * (abs(p[11]) + abs(p[12]) + abs(p[13]) + 1e-300)
@@ -271,7 +299,7 @@ def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float
         trial_current = (low * above_high - high * above_low) / (above_high - above_low)
         if not low < trial_current < high:
             trial_current = 0.5 * (low + high)
-        above = _held(state, p, n, m, trial_current, step_s, target, trial)
+        above = _held(state, p, n, m, trial_current, step_s, target, trial, share_a, share_b)
         if abs(above) <= close:
             return trial_current
         if above < 0.0:
@@ -284,8 +312,8 @@ def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float
             if side == 1:
                 above_low *= 0.5
             side = 1
-    below = abs(_held(state, p, n, m, low, step_s, target, trial))
-    return low if below <= abs(_held(state, p, n, m, high, step_s, target, trial)) else high
+    below = abs(_held(state, p, n, m, low, step_s, target, trial, share_a, share_b))
+    return low if below <= abs(_held(state, p, n, m, high, step_s, target, trial, share_a, share_b)) else high
 
 
 TwoWireState = HeldState  # what a record leaves the model in (sma_stage.model.held)
@@ -382,8 +410,11 @@ class TwoWireStream:
         limit = self.max_current_a
         current = _command_for(self._state, self._p, self._n, self._m, float(target), float(horizon_s),
                                -limit, limit, self._trial)
-        short = _held(self._state, self._p, self._n, self._m, current, float(horizon_s), float(target), self._trial)
-        self.last_clipped = (current == limit and short < 0.0) - (current == -limit and short > 0.0)
+        self.last_clipped = 0
+        if abs(current) == limit:
+            short = _held(self._state, self._p, self._n, self._m, current, float(horizon_s), float(target),
+                          self._trial, *_shares(self._state, self._p, self._n))
+            self.last_clipped = (current == limit and short < 0.0) - (current == -limit and short > 0.0)
         return current
 
     def command_for(self, target: float, step_s: float) -> float:
