@@ -67,6 +67,20 @@ def test_the_stream_follows_the_record():
     np.testing.assert_allclose(outputs, model.predict(t, u), rtol=0, atol=1e-15)
 
 
+@pytest.mark.parametrize(("hold_s", "tolerance_pct"), [(1.6, 5.0), (20.0, 1.0), (120.0, 1.0)])
+def test_a_long_hold_is_what_the_same_hold_sampled_gives(hold_s, tolerance_pct):
+    """The inverse holds a current over the lead's horizon (1.6 s at lead 3, 30 time constants with none) and the
+    reach is a 30-time-constant hold: in one step the position's pull and the heating's fall stay where the hold
+    began (9 % and 32 % of the span off here); the hold in sub-steps stays near the same hold in 0.2 s steps."""
+    model = example_model(4, 5)
+    span = model.stream().step(5.0, 200.0) - model.stream().step(-5.0, 200.0)
+    for current in np.linspace(-5.0, 5.0, 21):
+        sampled = model.stream()
+        for _ in range(int(round(hold_s / 0.2))):
+            end = sampled.step(current, 0.2)
+        assert abs(model.stream().step(current, hold_s) - end) <= tolerance_pct / 100 * span
+
+
 def test_the_exact_inverse_round_trips_reachable_targets():
     """Targets the model reached under some current: the inverse finds a current that reaches each to 1e-9 of
     the span, one sample at a time."""

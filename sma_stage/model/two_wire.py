@@ -16,7 +16,9 @@ two wires' transformations pull together. Per wire w (a: heated by u > 0, b: by 
 
 Sampling: y[k] is the position measured at t[k]; the current u[k] is applied from t[k] to t[k+1] (held, as a
 sampled drive and a compensator's command are). So y[k] depends on u[0..k-1] and the state before the record,
-and the exact inverse is the current that, held over the next period, brings the output to the target.
+and the exact inverse is the current that, held over the next period, brings the output to the target. A hold
+longer than FIRST_SUBSTEP_S (a compensator's lead horizon, the reach) is taken in sub-steps, as if sampled: in one
+step the position's pull on each wire and the heating's fall would stay where the hold began.
 """
 
 from __future__ import annotations
@@ -47,6 +49,9 @@ HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hyste
 INVERSE_ITERATIONS = 100  # at most this many trial steps per inverse call (a few are the rule)
 OUTPUT_TOLERANCE = 1e-13  # a trial within this fraction of the strokes and offset of the target ends the search
 CURRENT_TOLERANCE = 1e-14  # a bracket narrower than this (relative) ends it
+FIRST_SUBSTEP_S = 1.0  # a longer hold is taken in sub-steps this long (a record's step, 1 s or less, is one) ..
+SETTLING_TAUS = 3.0  # .. over the first this many time constants of the slower wire, then ..
+SUBSTEP_GROWTH = 1.5  # .. each this many times the one before
 
 
 @dataclass(frozen=True)
@@ -188,7 +193,26 @@ def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
 def _advance_from(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float,
                   share_a: float, share_b: float) -> tuple[float, float, float]:
     """_advance given the wires' transformed shares at the step's start (what the last step left); the output
-    at the end and the shares there."""
+    at the end and the shares there. A hold longer than FIRST_SUBSTEP_S is taken in sub-steps that long, growing
+    by SUBSTEP_GROWTH each after SETTLING_TAUS time constants, so that the position's pull on each wire and its
+    heating follow the hold as they follow a sampled record."""
+    left, length, growing_after = step_s, FIRST_SUBSTEP_S, step_s - SETTLING_TAUS * max(p[0], p[1])
+    while True:
+        last = left <= length * (1.0 + 1e-9)
+        substep = left if last else length
+        y, share_a, share_b = _substep(state, p, n, m, current, substep, share_a, share_b)
+        if last:
+            return y, share_a, share_b
+        left -= substep
+        if left < growing_after:
+            length *= SUBSTEP_GROWTH
+
+
+@numba.njit(cache=True, nogil=True)
+def _substep(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float,
+             share_a: float, share_b: float) -> tuple[float, float, float]:
+    """One step of the model's recursion (the module's equations, the position and the shares those at its
+    start); the output at the end and the shares there."""
     reference = p[2]
     heating = current * current / reference
     y_before = state[2 + 2 * n + m]
