@@ -81,6 +81,28 @@ def test_a_long_hold_is_what_the_same_hold_sampled_gives(hold_s, tolerance_pct):
         assert abs(model.stream().step(current, hold_s) - end) <= tolerance_pct / 100 * span
 
 
+def test_a_hold_of_no_finite_length_ends():
+    """The sub-steps count down a finite hold; an infinite one is one step (settled), and so is a NaN one (its
+    temperature NaN), where counting down would never end."""
+    assert np.isfinite(example_model().stream().step(3.0, float("inf")))
+    stream = example_model().stream()
+    stream.step(3.0, float("nan"))
+    assert np.isnan(stream.temperatures[0])
+
+
+def test_a_slow_wire_holds_in_at_most_so_many_sub_steps():
+    """A wire of 500 s (the fit's bound) settles over 1500 s, taken in 30 sub-steps of 50 s (not 1500 of 1 s, a
+    cost per inverse trial): the hold still ends within 1 % of the span of where 1 s steps take it."""
+    values = {**example_model().parameters.values, "tau_a_s": 500.0, "tau_b_s": 450.0}
+    params = example_model().parameters
+    model = TwoWireModel(TwoWireParameters(values, params.weights_a, params.weights_b, params.output_weights))
+    span = model.stream().step(5.0, 2e4) - model.stream().step(-5.0, 2e4)
+    sampled = model.stream()
+    for _ in range(3000):
+        end = sampled.step(4.0, 1.0)
+    assert abs(model.stream().step(4.0, 3000.0) - end) <= 0.01 * span
+
+
 def test_the_exact_inverse_round_trips_reachable_targets():
     """Targets the model reached under some current: the inverse finds a current that reaches each to 1e-9 of
     the span, one sample at a time."""

@@ -52,6 +52,7 @@ CURRENT_TOLERANCE = 1e-14  # a bracket narrower than this (relative) ends it
 FIRST_SUBSTEP_S = 1.0  # a longer hold is taken in sub-steps this long (a record's step, 1 s or less, is one) ..
 SETTLING_TAUS = 3.0  # .. over the first this many time constants of the slower wire, then ..
 SUBSTEP_GROWTH = 1.5  # .. each this many times the one before
+SETTLING_SUBSTEPS = 30  # sub-steps over those time constants at most (longer ones for a slow wire)
 
 
 @dataclass(frozen=True)
@@ -186,17 +187,20 @@ def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
     """Hold `current` [A] for step_s [s] from `state` (changed in place); the output at the end."""
     heated = 0 if current > 0.0 else 1
     share = _transformed_share(state, p, n, heated) if current != 0.0 and p[RESISTANCE_DROP] > 0.0 else 0.0
-    return _advance_from(state, p, n, m, current, step_s, share, share)[0]
+    return _advance_from(state, p, n, m, current, step_s, share, share)[0]  # only the heated wire's is read
 
 
 @numba.njit(cache=True, nogil=True)
 def _advance_from(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float,
                   share_a: float, share_b: float) -> tuple[float, float, float]:
     """_advance given the wires' transformed shares at the step's start (what the last step left); the output
-    at the end and the shares there. A hold longer than FIRST_SUBSTEP_S is taken in sub-steps that long, growing
-    by SUBSTEP_GROWTH each after SETTLING_TAUS time constants, so that the position's pull on each wire and its
-    heating follow the hold as they follow a sampled record."""
-    left, length, growing_after = step_s, FIRST_SUBSTEP_S, step_s - SETTLING_TAUS * max(p[0], p[1])
+    at the end and the shares there. A hold longer than FIRST_SUBSTEP_S is taken in sub-steps that long (at most
+    SETTLING_SUBSTEPS over SETTLING_TAUS time constants), growing by SUBSTEP_GROWTH each after those, so that the
+    position's pull on each wire and its heating follow the hold as they follow a sampled record."""
+    if not math.isfinite(step_s):
+        return _substep(state, p, n, m, current, step_s, share_a, share_b)
+    settling_s = SETTLING_TAUS * max(p[0], p[1])
+    left, length, growing_after = step_s, max(FIRST_SUBSTEP_S, settling_s / SETTLING_SUBSTEPS), step_s - settling_s
     while True:
         last = left <= length * (1.0 + 1e-9)
         substep = left if last else length
