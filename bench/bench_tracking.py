@@ -98,14 +98,16 @@ def record(signal: np.ndarray, name: str) -> tuple:
     return series, run
 
 
-def identify() -> Identified:
-    """Run the identification and validation signals through the simulator and identify the models."""
+def identify(families: tuple[str, ...] = ("gpi",)) -> Identified:
+    """Run the identification and validation signals through the simulator and identify the models (the
+    pipeline comparing `families`)."""
     started = time.perf_counter()
     applied_from_s = PLANT_STEP_S * np.arange(int(round(IDENTIFICATION_DURATION_S / PLANT_STEP_S)))
     ident, run = record(paper_identification_signal(applied_from_s), "identification")
     valid, _ = record(paper_validation_signal(applied_from_s), "validation")
-    found = identify_recording(ident, valid, diagnose_rounds=4)
-    effects = " + ".join(found.model.effect_names) or "nothing added"
+    found = identify_recording(ident, valid, diagnose_rounds=4, families=families)
+    names = getattr(found.model, "effect_names", None)  # a GPI's effects; another family is named by itself
+    effects = (" + ".join(names) or "nothing added") if names is not None else f"{found.model.FAMILY} model"
     after = found.diagnosis.after.rms_pct if found.diagnosis else found.report["validation"]["rms_pct"]
     models = (Model("GPI inverse", IdentifiedModel(found.fit.parameters, found.fit.operators),
                     found.fit.identification.rms_pct),

@@ -2,6 +2,7 @@
 a change of the stage is flagged; the watch's cost per sample. Prints tables.
 
     .venv/bin/python bench/bench_watch.py [--hours 4] [--seeds 0,1,2] [--change-seeds 1] [--path-time-constants 2,8]
+                                          [--families gpi,two_wire]
 
 The model is identified as bench/bench_tracking.py identifies it (the paper's signals, the package's pipeline);
 then a fresh simulator tracks a setpoint with the compensator's PI loop at 0.1 s, and the watch
@@ -144,9 +145,15 @@ def main() -> int:
     parser.add_argument("--change-seeds", default="1", help="simulator seeds of the runs with a change")
     parser.add_argument("--path-time-constants", default=None,
                         help="the path test's low-passes of the position [s], comma-separated (default: the watch's)")
+    parser.add_argument("--families", default="gpi",
+                        help="the model families the identification compares (gpi_tool diagnose --families); the "
+                             "watch runs the one chosen")
     args = parser.parse_args()
     started = time.perf_counter()
-    identified = identify()
+    try:
+        identified = identify(tuple(args.families.split(",")))
+    except InputError as error:
+        parser.error(f"--families: {error}")
     model = identified.models[1].model
     stroke = identified.stroke_m[1] - identified.stroke_m[0]
     kinds = setpoints(identified.stroke_m)
