@@ -1,7 +1,8 @@
 """The model watch through the three node executables on simulated time: excite and refit, then tracking a sine
 with the PI loop while the watch learns the residual along the path; a load step of the simulated stage is
 flagged, the refit on drift swaps in a model fitted after the step that tracks as well as before it, and
-~/rollback restores the model before it."""
+~/rollback restores the model before it. WATCH_TEST_FAMILIES (default gpi) sets the refit's model families:
+with `WATCH_TEST_FAMILIES=gpi,two_wire pytest -s test/test_watch_nodes.py` it watches the two-wire model."""
 
 import json
 import math

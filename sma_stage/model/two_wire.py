@@ -202,7 +202,7 @@ def _advance_from(state: np.ndarray, p: np.ndarray, n: int, m: int, current: flo
     settling_s = SETTLING_TAUS * max(p[0], p[1])
     left, length, growing_after = step_s, max(FIRST_SUBSTEP_S, settling_s / SETTLING_SUBSTEPS), step_s - settling_s
     while True:
-        last = left <= length * (1.0 + 1e-9)
+        last = left <= length * (1.0 + 1e-9)  # a record's step of FIRST_SUBSTEP_S, give or take rounding
         substep = left if last else length
         y, share_a, share_b = _substep(state, p, n, m, current, substep, share_a, share_b)
         if last:
