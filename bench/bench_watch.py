@@ -2,7 +2,7 @@
 a change of the stage is flagged; the watch's cost per sample. Prints tables.
 
     .venv/bin/python bench/bench_watch.py [--hours 4] [--seeds 0,1,2] [--change-seeds 1] [--path-time-constants 2,8]
-                                          [--families gpi,two_wire]
+                                          [--families gpi,two_wire] [--loop-jitter 2]
 
 The model is identified as bench/bench_tracking.py identifies it (the paper's signals, the package's pipeline);
 then a fresh simulator tracks a setpoint with the compensator's PI loop at 0.1 s, and the watch
@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
@@ -62,30 +63,35 @@ def setpoints(stroke: tuple[float, float]) -> dict[str, Setpoint]:
             "held random levels": lambda t: float(levels[int(t // HOLD_S)])}
 
 
-def record(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int) -> np.ndarray:
+def record(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, jitter_steps: int = 0
+           ) -> np.ndarray:
     """The PI loop tracking setpoint on a fresh simulator: rows of (time at the end of each step [s], applied current [A],
-    measured position [m], setpoint [m]), one per CONTROL_STEP_S."""
+    measured position [m], setpoint [m]), one per CONTROL_STEP_S. jitter_steps: the loop is given the position a
+    random 0 to jitter_steps steps late (as through the nodes, where it arrives a few ms late at a fast pace)."""
     core = Compensator(model, MAX_CURRENT_A, **imc_gains(model, CONTROL_STEP_S))
     stage = StageSimulator(effects=effects, seed=seed)
+    lateness = np.random.default_rng(seed + 1000)
     steps = int(round(seconds / CONTROL_STEP_S))
-    position = stage.state.measured_position_m
+    measured = deque([stage.state.measured_position_m] * (jitter_steps + 1), maxlen=jitter_steps + 1)
     rows = np.empty((steps, 4))
     for k in range(steps):
         t = k * CONTROL_STEP_S
         target = setpoint(t)
-        current = core.command(target, position, CONTROL_STEP_S if k else 0.0)
+        late = int(lateness.integers(0, jitter_steps + 1)) if jitter_steps else 0
+        current = core.command(target, measured[-1 - late], CONTROL_STEP_S if k else 0.0)
         position = stage.step(current, CONTROL_STEP_S).measured_position_m
+        measured.append(position)
         rows[k] = (t + CONTROL_STEP_S, current, position, target)
     return rows
 
 
-def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, test: DriftTest | None = None
-        ) -> tuple[list[tuple[float, str]], float, float, float, float]:
+def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, test: DriftTest | None = None,
+        jitter_steps: int = 0) -> tuple[list[tuple[float, str]], float, float, float, float]:
     """((time [s], test) of each drift flag, restarting the tests after each; the tracking RMS [m]; the path test's
     mean coverage of the windows it looked at; the watch's mean cost per sample [us]; how far a window's mean
     innovation wandered while calibrating, bias_held_out_m [m]). The watch is fed the record CHUNK_STEPS
     samples at a time, as it would be while the stage runs (it only looks back)."""
-    rows = record(model, setpoint, effects, seconds, seed)
+    rows = record(model, setpoint, effects, seconds, seed, jitter_steps)
     watch = ModelWatch(model, test)
     alarms, coverages, watch_s = [], [], 0.0
     for start in range(0, len(rows) - CHUNK_STEPS + 1, CHUNK_STEPS):
@@ -112,14 +118,15 @@ def alarm_test(watch: ModelWatch) -> str:
     return "path" if watch.path_drift else "level"
 
 
-def residual_moved(model, setpoint: Setpoint, seed: int, after_s: tuple[float, ...]) -> dict[str, list[float]]:
+def residual_moved(model, setpoint: Setpoint, seed: int, after_s: tuple[float, ...], jitter_steps: int = 0
+                   ) -> dict[str, list[float]]:
     """How far each change moves the model's residual [m]: the mean over the WINDOW_S ending each of after_s [s]
     after the change of (residual with the change - residual without it), the same seed and setpoint; and, as
     "nothing (one period later)", how far it moves with nothing changed between one sine period and the next."""
     seconds = CHANGE_S + max(after_s)
 
     def residual(effects: Effects) -> np.ndarray:
-        rows = record(model, setpoint, effects, seconds, seed)
+        rows = record(model, setpoint, effects, seconds, seed, jitter_steps)
         return rows[:, 2] - model.run(rows[:, 0], rows[:, 1], None)[0]
 
     quiet = residual(Effects())
@@ -148,7 +155,11 @@ def main() -> int:
     parser.add_argument("--families", default="gpi",
                         help="the model families the identification compares (gpi_tool diagnose --families); the "
                              "watch runs the one chosen")
+    parser.add_argument("--loop-jitter", type=int, default=0,
+                        help="the PI loop is given the position a random 0 to this many control steps late")
     args = parser.parse_args()
+    if args.loop_jitter < 0:
+        parser.error(f"--loop-jitter must be 0 or more control steps, got {args.loop_jitter}")
     started = time.perf_counter()
     try:
         identified = identify(tuple(args.families.split(",")))
@@ -172,7 +183,8 @@ def main() -> int:
     runs = [("sine", int(seed)) for seed in args.seeds.split(",")] + [("two cosines", 0), ("held random levels", 0)]
     alarms_total, hours_total = 0, 0.0
     for kind, seed in runs:
-        alarms, rms, coverage, cost, bias_scale = run(model, kinds[kind], Effects(), 3600.0 * args.hours, seed, test)
+        alarms, rms, coverage, cost, bias_scale = run(model, kinds[kind], Effects(), 3600.0 * args.hours, seed, test,
+                                                      args.loop_jitter)
         alarms_total, hours_total = alarms_total + len(alarms), hours_total + args.hours
         listed = f" ({', '.join(f'{when:.0f} s {test}' for when, test in alarms[:3])})" if alarms else ""
         print(f"| {kind} | {seed} | {args.hours:g} | {len(alarms)}{listed} | {100 * rms / stroke:.3f} | "
@@ -184,7 +196,7 @@ def main() -> int:
     cases = [("sine", name, int(seed)) for name in CHANGES for seed in args.change_seeds.split(",")] + [
         ("two cosines", "load step 2 N", 1), ("held random levels", "load step 2 N", 1)]
     for kind, name, seed in cases:
-        alarms, *_ = run(model, kinds[kind], CHANGES[name], CHANGE_S + AFTER_CHANGE_S, seed, test)
+        alarms, *_ = run(model, kinds[kind], CHANGES[name], CHANGE_S + AFTER_CHANGE_S, seed, test, args.loop_jitter)
         flagged = [(when, by) for when, by in alarms if when >= CHANGE_S]
         early = len(alarms) - len(flagged)
         delay, by = (f"{flagged[0][0] - CHANGE_S:.0f}", flagged[0][1]) if flagged else (
@@ -196,7 +208,7 @@ def main() -> int:
           f"{1e6 * model.metadata.get('held_out_rms', float('nan')):.1f} um:\n")
     print(f"| change from 3000 s | {after} |")
     print("|---" * (1 + len(MOVED_AFTER_S)) + "|")
-    for name, moves in residual_moved(model, kinds["sine"], 1, MOVED_AFTER_S).items():
+    for name, moves in residual_moved(model, kinds["sine"], 1, MOVED_AFTER_S, args.loop_jitter).items():
         print(f"| {name} | " + " | ".join(f"{1e6 * move:+.2f}" for move in moves) + " |")
     print(f"\nwall time {time.perf_counter() - started:.1f} s")
     return 0
