@@ -77,8 +77,8 @@ def record(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: in
     for k in range(steps):
         t = k * CONTROL_STEP_S
         target = setpoint(t)
-        late = int(lateness.integers(0, jitter_steps + 1)) if jitter_steps else 0
-        current = core.command(target, measured[-1 - late], CONTROL_STEP_S if k else 0.0)
+        current = core.command(target, measured[-1 - int(lateness.integers(0, jitter_steps + 1))],
+                               CONTROL_STEP_S if k else 0.0)
         position = stage.step(current, CONTROL_STEP_S).measured_position_m
         measured.append(position)
         rows[k] = (t + CONTROL_STEP_S, current, position, target)
