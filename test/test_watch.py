@@ -182,3 +182,18 @@ def test_the_recent_record_keeps_the_last_seconds_in_order():
 def test_the_drift_says_where_the_change_began():
     watch, _ = watch_until_drift(*plant_record("periodic", 2e-6, 1500.0), chunk=5)
     assert watch.state == "drift" and 1500.0 - FAST.window_s <= watch.onset_s <= 1500.0 + FAST.window_s
+
+
+@pytest.mark.parametrize(("arguments", "message"), [
+    (["--loop-jitter", "-1"], "--loop-jitter must be 0 or more control steps"),
+    (["--families", "nope"], "--families: unknown model family 'nope'"),
+])
+def test_the_watch_bench_refuses_bad_arguments_in_one_line(arguments, message):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parent.parent / "bench" / "bench_watch.py"
+    run = subprocess.run([sys.executable, str(script), *arguments], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and run.stdout == ""
+    assert message in run.stderr.strip().splitlines()[-1] and "Traceback" not in run.stderr
