@@ -61,7 +61,7 @@ def test_bad_settings_are_refused_in_one_line(setting, value):
         DriftTest(**{setting: value})
 
 
-FAST = DriftTest(calibration_windows=30)  # a 600 s calibration: five periods of the paths below
+FAST = DriftTest(calibration_windows=60)  # a 600 s calibration: five periods of the paths below
 
 
 def plant_record(path: str, shift_m: float = 0.0, shift_from_s: float = np.inf, seconds: float = 2400.0):

@@ -57,6 +57,7 @@ WINDOWS_TO_TRIP = 3  # judged windows the path test needs at least to trip (one 
 EXPLAINED = 2.0  # innovations up to this many times what the passes' differences and the noise give ...
 BIAS_FLOOR = 0.005  # the bias test's scale of a window's mean innovation is at least this fraction of r0
 MIN_HELD_OUT_WINDOWS = 5  # calibration windows compared with their other passes that measure the bias test's scale
+HELD_OUT_OUTLIER = 6.0  # a calibration window whose mean is this many robust standard deviations out is left out
 JUDGE_RATE_HZ = 10.0  # the path test judges at most this many samples per second of stage time
 MIN_FEATURE_SPREAD_M = 1e-9  # a feature that did not move in the memory is scaled as if it spread this much [m]
 
@@ -66,11 +67,11 @@ class DriftTest:
     """The tests' settings: the level test drifts when the sum of ln(r / (allowance r0)) over windows exceeds
     `threshold`; the path test when the sum of (z - shift_allowance) exceeds `shift_threshold`."""
 
-    window_s: float = 20.0
+    window_s: float = 10.0
     allowance: float = 1.5
     threshold: float = 1.5
-    calibration_windows: int = 60
-    warmup_windows: int = 15  # the first windows in force, not counted: the model and the stage settle
+    calibration_windows: int = 120
+    warmup_windows: int = 30  # the first windows in force, not counted: the model and the stage settle
     shift_allowance: float = 0.1  # innovations up to this fraction of r0 count as no change
     shift_threshold: float = 0.3
     path_radius: float = 0.2  # a path this near remembered ones (in the memory's standard deviations) is judged
@@ -478,11 +479,13 @@ class ModelWatch:
     def _held_out_bias(self, reference: float) -> float:
         """The RMS [m] of the calibration windows' mean innovations, each sample compared with its nearest of the
         other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's mean wanders with
-        nothing changed."""
+        nothing changed. A window HELD_OUT_OUTLIER robust standard deviations (1.4826 times the median |mean|) out
+        is left out: one such window (a pass remembered while the stage still settled) would set the scale alone."""
         if self.held_out_bias_m is None:
             means = self.memory.held_out_window_means(self.test.window_s, self.test.path_radius, PASS_GAP_S,
                                                       PASS_AGREEMENT * reference, self.test.min_coverage)
-            self.held_out_bias_m = float(np.sqrt(np.mean(np.square(means)))) if means.size >= MIN_HELD_OUT_WINDOWS \
+            kept = means[np.abs(means) <= HELD_OUT_OUTLIER * 1.4826 * np.median(np.abs(means))] if means.size else means
+            self.held_out_bias_m = float(np.sqrt(np.mean(np.square(kept)))) if kept.size >= MIN_HELD_OUT_WINDOWS \
                 else 0.0
         return self.held_out_bias_m
 

@@ -152,11 +152,11 @@ IDENTIFICATION_PARAMS = [
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
     Param("watch", True, "watch the compensator's model against the stage: ~/residual and a /diagnostics status",
           read_only=True),
-    Param("watch_window", 20.0, "the watch's window [s of stage time]: the drift tests look at the residual per "
+    Param("watch_window", 10.0, "the watch's window [s of stage time]: the drift tests look at the residual per "
           "window", 1.0, 3600.0, read_only=True),
-    Param("watch_warmup_windows", 15, "windows after a model goes in force that are not counted (it and the stage settle "
+    Param("watch_warmup_windows", 30, "windows after a model goes in force that are not counted (it and the stage settle "
           "from what came before: an excitation leaves the wires warm for minutes)", 0, 1000, read_only=True),
-    Param("watch_calibration_windows", 60, "windows after the warm-up that measure the model's residual: its level and "
+    Param("watch_calibration_windows", 120, "windows after the warm-up that measure the model's residual: its level and "
           "where along the stage's path it is what (the path test's memory)", 1, 100000, read_only=True),
     Param("watch_shift_allowance", 0.1, "path test: where the stage retraces its path, a residual moved by up to this "
           "fraction of the reference counts as no change", 0.0, 10.0, read_only=True),
