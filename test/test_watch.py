@@ -7,7 +7,14 @@ import pytest
 from test_two_wire import example_model
 
 from sma_stage.errors import InputError
-from sma_stage.identify.watch import CusumOfWindows, DriftTest, ModelWatch, RecentRecord, _nearest_kept
+from sma_stage.identify.watch import (
+    CusumOfWindows,
+    DriftTest,
+    ModelWatch,
+    RecentRecord,
+    _nearest_kept,
+    rms_without_outliers,
+)
 
 
 def windows_to_alarm(levels: np.ndarray, test: DriftTest, held_out: float | None = None) -> list[int]:
@@ -139,6 +146,15 @@ def test_the_calibrations_held_out_comparison_keeps_as_many_neighbours_as_a_judg
     index = np.array([[3, 9, 1, 9, 2], [9, 9, 0, 4, 9]])
     np.testing.assert_array_equal(_nearest_kept(index, 9, 2), [[3, 1], [0, 4]])
     np.testing.assert_array_equal(_nearest_kept(index, 9, 3), [[3, 1, 2], [0, 4, 9]])
+
+
+def test_one_wild_calibration_window_does_not_set_the_bias_tests_scale():
+    means = 0.1e-6 * np.random.default_rng(3).standard_normal(112)
+    plain = float(np.sqrt(np.mean(np.square(means))))
+    assert rms_without_outliers(means) == pytest.approx(plain)  # nothing far out: the RMS of all
+    assert rms_without_outliers(np.append(means, 3.8e-6)) == pytest.approx(plain)  # the settling pass left out
+    assert rms_without_outliers(np.append(means, 3 * plain)) > plain  # a tail within reach is kept
+    assert rms_without_outliers(means[:4]) == 0.0  # too few windows to say
 
 
 def test_a_path_never_retraced_is_not_judged_and_gives_no_alarm():

@@ -280,6 +280,14 @@ def _nearest_kept(index: np.ndarray, missing: int, count: int) -> np.ndarray:
     return np.take_along_axis(index, order, axis=1)
 
 
+def rms_without_outliers(values: np.ndarray) -> float:
+    """The RMS of values less those more than HELD_OUT_OUTLIER robust standard deviations (1.4826 times the median
+    |value|) from 0; 0 when fewer than MIN_HELD_OUT_WINDOWS are left."""
+    values = np.asarray(values, dtype=float)
+    kept = values[np.abs(values) <= HELD_OUT_OUTLIER * 1.4826 * np.median(np.abs(values))] if values.size else values
+    return float(np.sqrt(np.mean(np.square(kept)))) if kept.size >= MIN_HELD_OUT_WINDOWS else 0.0
+
+
 def load_kernels(model: object) -> None:
     """Run the watch's compiled kernels and the model's forward once on a throwaway record, so that they load (or
     build: seconds on a cold numba cache) now and not in a node's first callback."""
@@ -479,14 +487,12 @@ class ModelWatch:
     def _held_out_bias(self, reference: float) -> float:
         """The RMS [m] of the calibration windows' mean innovations, each sample compared with its nearest of the
         other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's mean wanders with
-        nothing changed. A window HELD_OUT_OUTLIER robust standard deviations (1.4826 times the median |mean|) out
-        is left out: one such window (a pass remembered while the stage still settled) would set the scale alone."""
+        nothing changed (rms_without_outliers: one window from a pass remembered while the stage still settled
+        would set the scale alone)."""
         if self.held_out_bias_m is None:
             means = self.memory.held_out_window_means(self.test.window_s, self.test.path_radius, PASS_GAP_S,
                                                       PASS_AGREEMENT * reference, self.test.min_coverage)
-            kept = means[np.abs(means) <= HELD_OUT_OUTLIER * 1.4826 * np.median(np.abs(means))] if means.size else means
-            self.held_out_bias_m = float(np.sqrt(np.mean(np.square(kept)))) if kept.size >= MIN_HELD_OUT_WINDOWS \
-                else 0.0
+            self.held_out_bias_m = rms_without_outliers(means)
         return self.held_out_bias_m
 
     @property
