@@ -123,6 +123,23 @@ def test_an_unreachable_target_gets_the_current_limit():
     assert stream.command_for(-1.0, 0.2) == -5.0
 
 
+def test_the_inverse_from_the_last_command_answers_as_the_search_over_the_whole_range():
+    """current_for seeks its bracket from its last answer first; the answer is the one found from the range's ends
+    (a fresh stream: no last answer), near the last one, far from it and beyond reach either way."""
+    model, (t, u) = example_model(), excitation(800)
+    outputs, state = model.run(t[:400], u[:400])
+    low, high = float(np.min(outputs)), float(np.max(outputs))
+    stream = model.stream(state, max_current_a=5.0)
+    stream.current_for(0.5 * (low + high), 0.2)
+    for target in (0.5 * (low + high) + 1e-3 * (high - low), low + 0.1 * (high - low), high - 0.05 * (high - low),
+                   high + 10.0 * (high - low), 0.5 * (low + high), low - 10.0 * (high - low)):
+        fresh = model.stream(state, max_current_a=5.0)
+        expected = fresh.current_for(target, 0.2)
+        assert stream.current_for(target, 0.2) == pytest.approx(expected, abs=1e-9)
+        assert stream.last_clipped == fresh.last_clipped
+    assert stream.last_clipped == -1  # the last target is beyond reach below
+
+
 def test_the_model_file_round_trips(tmp_path):
     model, (t, u) = example_model(4, 5), excitation()
     _, state = model.run(t, u)

@@ -49,6 +49,8 @@ HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hyste
 INVERSE_ITERATIONS = 100  # at most this many trial steps per inverse call (a few are the rule)
 OUTPUT_TOLERANCE = 1e-13  # a trial within this fraction of the strokes and offset of the target ends the search
 CURRENT_TOLERANCE = 1e-14  # a bracket narrower than this (relative) ends it
+GUESS_FIRST_STEP = 1e-3  # the bracket is sought from the last command first in steps of this fraction of the range ..
+GUESS_GROWTH = 8.0  # .. each this many times the one before
 FIRST_SUBSTEP_S = 1.0  # a longer hold is taken in sub-steps this long (a record's step, 1 s or less, is one) ..
 SETTLING_TAUS = 3.0  # .. over the first this many time constants of the slower wire, then ..
 SUBSTEP_GROWTH = 1.5  # .. each this many times the one before
@@ -307,19 +309,42 @@ def _held(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step
 
 @numba.njit(cache=True, nogil=True)
 def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float, step_s: float,
-                 low: float, high: float, trial: np.ndarray) -> float:
+                 low: float, high: float, guess: float, trial: np.ndarray) -> float:
     """The current in [low, high] [A] that, held for step_s, brings the output closest to target: the output
     at the end of the step rises with the current over the whole range (u < 0 heats wire b less as u rises,
     u > 0 heats wire a more), so a bracketing search finds it (regula falsi, Illinois variant, bisecting when a
-    step would leave the bracket); the range's end when the target is out of reach."""
+    step would leave the bracket); the range's end when the target is out of reach. guess (NaN: none), the last
+    command, is where the bracket is sought first: steps from it growing by GUESS_GROWTH until the output
+    crosses the target, a few trials where the target moved little since, in place of the range's ends."""
     share_a, share_b = _shares(state, p, n)
-    above_high = _held(state, p, n, m, high, step_s, target, trial, share_a, share_b)
-    if above_high <= 0.0:
-        return high
-    above_low = _held(state, p, n, m, low, step_s, target, trial, share_a, share_b)
-    if above_low >= 0.0:
-        return low
     close = OUTPUT_TOLERANCE * (abs(p[11]) + abs(p[12]) + abs(p[13]) + 1e-300)
+    if low < guess < high:
+        above = _held(state, p, n, m, guess, step_s, target, trial, share_a, share_b)
+        if abs(above) <= close:
+            return guess
+        rising = above < 0.0  # the answer lies above the guess
+        end = high if rising else low
+        width = GUESS_FIRST_STEP * (high - low)
+        near, above_near = guess, above
+        while True:
+            far = min(end, near + width) if rising else max(end, near - width)
+            above_far = _held(state, p, n, m, far, step_s, target, trial, share_a, share_b)
+            if abs(above_far) <= close:
+                return far
+            if (above_far > 0.0) == rising:
+                break
+            if far == end:
+                return end  # the target is beyond what the range's end reaches
+            near, above_near, width = far, above_far, width * GUESS_GROWTH
+        low, above_low, high, above_high = (near, above_near, far, above_far) if rising else (far, above_far, near,
+                                                                                              above_near)
+    else:
+        above_high = _held(state, p, n, m, high, step_s, target, trial, share_a, share_b)
+        if above_high <= 0.0:
+            return high
+        above_low = _held(state, p, n, m, low, step_s, target, trial, share_a, share_b)
+        if above_low >= 0.0:
+            return low
     side = 0
     for _ in range(INVERSE_ITERATIONS):
         if high - low <= CURRENT_TOLERANCE * (abs(low) + abs(high) + 1.0):
@@ -415,6 +440,7 @@ class TwoWireStream:
         self._n, self._m = params.wire_operators, params.output_operators
         self._state = model.rest_state() if state is None else np.array(state.values, dtype=float)
         self._trial = np.empty_like(self._state)
+        self._last_current = math.nan  # the last current_for's answer [A]: where the next one's search starts
         self.last_clipped = 0
 
     @property
@@ -437,7 +463,8 @@ class TwoWireStream:
         what the limit reaches over the horizon, else 0."""
         limit = self.max_current_a
         current = _command_for(self._state, self._p, self._n, self._m, float(target), float(horizon_s),
-                               -limit, limit, self._trial)
+                               -limit, limit, self._last_current, self._trial)
+        self._last_current = current
         self.last_clipped = 0
         if abs(current) == limit:
             short = _held(self._state, self._p, self._n, self._m, current, float(horizon_s), float(target),
