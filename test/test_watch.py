@@ -202,6 +202,7 @@ def test_the_drift_says_where_the_change_began():
 
 @pytest.mark.parametrize(("arguments", "message"), [
     (["--loop-jitter", "-1"], "--loop-jitter must be 0 or more control steps"),
+    (["--watch-starts", "0"], "--watch-starts must be from 1 to 100, got 0"),
     (["--families", "nope"], "--families: unknown model family 'nope'"),
 ])
 def test_the_watch_bench_refuses_bad_arguments_in_one_line(arguments, message):

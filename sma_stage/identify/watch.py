@@ -58,6 +58,7 @@ EXPLAINED = 2.0  # innovations up to this many times what the passes' difference
 BIAS_FLOOR = 0.005  # the bias test's scale of a window's mean innovation is at least this fraction of r0
 MIN_HELD_OUT_WINDOWS = 5  # calibration windows compared with their other passes that measure the bias test's scale
 HELD_OUT_OUTLIER = 6.0  # a calibration window whose mean is this many robust standard deviations out is left out
+MAD_TO_SIGMA = 1.0 / 0.6745  # a normal variable's standard deviation over its median absolute deviation
 JUDGE_RATE_HZ = 10.0  # the path test judges at most this many samples per second of stage time
 MIN_FEATURE_SPREAD_M = 1e-9  # a feature that did not move in the memory is scaled as if it spread this much [m]
 
@@ -232,7 +233,7 @@ class PathMemory:
         self._remembered = []
         if residuals.size < 2 * PATH_NEIGHBOURS:
             return False
-        self.noise_m = float(np.median(np.abs(np.diff(residuals))) / (0.6745 * math.sqrt(2.0)))
+        self.noise_m = float(MAD_TO_SIGMA * np.median(np.abs(np.diff(residuals))) / math.sqrt(2.0))
         kept = thinned_to_rate(times, MEMORY_RATE_HZ)
         features, self._times, self._residuals = features[kept], times[kept], residuals[kept]
         self._scale = max(float(features[:, 0].std()), MIN_FEATURE_SPREAD_M)
@@ -281,10 +282,11 @@ def _nearest_kept(index: np.ndarray, missing: int, count: int) -> np.ndarray:
 
 
 def rms_without_outliers(values: np.ndarray) -> float:
-    """The RMS of values less those more than HELD_OUT_OUTLIER robust standard deviations (1.4826 times the median
-    |value|) from 0; 0 when fewer than MIN_HELD_OUT_WINDOWS are left."""
+    """The RMS of values less those more than HELD_OUT_OUTLIER robust standard deviations (MAD_TO_SIGMA times the
+    median |value|) from 0; 0 when fewer than MIN_HELD_OUT_WINDOWS are left."""
     values = np.asarray(values, dtype=float)
-    kept = values[np.abs(values) <= HELD_OUT_OUTLIER * 1.4826 * np.median(np.abs(values))] if values.size else values
+    kept = values[np.abs(values) <= HELD_OUT_OUTLIER * MAD_TO_SIGMA * np.median(np.abs(values))] if values.size \
+        else values
     return float(np.sqrt(np.mean(np.square(kept)))) if kept.size >= MIN_HELD_OUT_WINDOWS else 0.0
 
 

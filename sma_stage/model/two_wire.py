@@ -308,20 +308,29 @@ def _held(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step
 
 
 @numba.njit(cache=True, nogil=True)
+def _clipped(current: float, above: float, lowest: float, highest: float) -> int:
+    """+1 (-1) when current is the range's top (bottom) and the output held there ends `above` < 0 (> 0): the
+    target is beyond what the range reaches; else 0."""
+    return int(current == highest and above < 0.0) - int(current == lowest and above > 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
 def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float, step_s: float,
-                 low: float, high: float, guess: float, trial: np.ndarray) -> float:
-    """The current in [low, high] [A] that, held for step_s, brings the output closest to target: the output
-    at the end of the step rises with the current over the whole range (u < 0 heats wire b less as u rises,
-    u > 0 heats wire a more), so a bracketing search finds it (regula falsi, Illinois variant, bisecting when a
-    step would leave the bracket); the range's end when the target is out of reach. guess (NaN: none), the last
-    command, is where the bracket is sought first: steps from it growing by GUESS_GROWTH until the output
-    crosses the target, a few trials where the target moved little since, in place of the range's ends."""
+                 low: float, high: float, guess: float, trial: np.ndarray) -> tuple[float, int]:
+    """The current in [low, high] [A] that, held for step_s, brings the output closest to target, and whether the
+    target is beyond the range (_clipped): the output at the end of the step rises with the current over the
+    whole range (u < 0 heats wire b less as u rises, u > 0 heats wire a more), so a bracketing search finds it
+    (regula falsi, Illinois variant, bisecting when a step would leave the bracket); the range's end when the
+    target is out of reach. guess (NaN: none), the last command, is where the bracket is sought first: steps
+    from it growing by GUESS_GROWTH until the output crosses the target, a few trials where the target moved
+    little since, in place of the range's ends."""
     share_a, share_b = _shares(state, p, n)
     close = OUTPUT_TOLERANCE * (abs(p[11]) + abs(p[12]) + abs(p[13]) + 1e-300)
+    lowest, highest = low, high
     if low < guess < high:
         above = _held(state, p, n, m, guess, step_s, target, trial, share_a, share_b)
         if abs(above) <= close:
-            return guess
+            return guess, 0
         rising = above < 0.0  # the answer lies above the guess
         end = high if rising else low
         width = GUESS_FIRST_STEP * (high - low)
@@ -329,22 +338,20 @@ def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float
         while True:
             far = min(end, near + width) if rising else max(end, near - width)
             above_far = _held(state, p, n, m, far, step_s, target, trial, share_a, share_b)
-            if abs(above_far) <= close:
-                return far
+            if abs(above_far) <= close or far == end and (above_far > 0.0) != rising:
+                return far, _clipped(far, above_far, lowest, highest)  # reached, or beyond the range's end
             if (above_far > 0.0) == rising:
                 break
-            if far == end:
-                return end  # the target is beyond what the range's end reaches
             near, above_near, width = far, above_far, width * GUESS_GROWTH
         low, above_low, high, above_high = (near, above_near, far, above_far) if rising else (far, above_far, near,
                                                                                               above_near)
     else:
         above_high = _held(state, p, n, m, high, step_s, target, trial, share_a, share_b)
         if above_high <= 0.0:
-            return high
+            return high, _clipped(high, above_high, lowest, highest)
         above_low = _held(state, p, n, m, low, step_s, target, trial, share_a, share_b)
         if above_low >= 0.0:
-            return low
+            return low, _clipped(low, above_low, lowest, highest)
     side = 0
     for _ in range(INVERSE_ITERATIONS):
         if high - low <= CURRENT_TOLERANCE * (abs(low) + abs(high) + 1.0):
@@ -354,7 +361,7 @@ def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float
             trial_current = 0.5 * (low + high)
         above = _held(state, p, n, m, trial_current, step_s, target, trial, share_a, share_b)
         if abs(above) <= close:
-            return trial_current
+            return trial_current, 0
         if above < 0.0:
             low, above_low = trial_current, above
             if side == -1:
@@ -366,7 +373,7 @@ def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float
                 above_low *= 0.5
             side = 1
     below = abs(_held(state, p, n, m, low, step_s, target, trial, share_a, share_b))
-    return low if below <= abs(_held(state, p, n, m, high, step_s, target, trial, share_a, share_b)) else high
+    return (low if below <= abs(_held(state, p, n, m, high, step_s, target, trial, share_a, share_b)) else high), 0
 
 
 TwoWireState = HeldState  # what a record leaves the model in (sma_stage.model.held)
@@ -462,14 +469,9 @@ class TwoWireStream:
         target [output unit]; the state does not move. last_clipped: +1 (-1) when the target is above (below)
         what the limit reaches over the horizon, else 0."""
         limit = self.max_current_a
-        current = _command_for(self._state, self._p, self._n, self._m, float(target), float(horizon_s),
-                               -limit, limit, self._last_current, self._trial)
+        current, self.last_clipped = _command_for(self._state, self._p, self._n, self._m, float(target),
+                                                  float(horizon_s), -limit, limit, self._last_current, self._trial)
         self._last_current = current
-        self.last_clipped = 0
-        if abs(current) == limit:
-            short = _held(self._state, self._p, self._n, self._m, current, float(horizon_s), float(target),
-                          self._trial, *_shares(self._state, self._p, self._n))
-            self.last_clipped = (current == limit and short < 0.0) - (current == -limit and short > 0.0)
         return current
 
     def command_for(self, target: float, step_s: float) -> float:
