@@ -157,6 +157,40 @@ def test_one_wild_calibration_window_does_not_set_the_bias_tests_scale():
     assert rms_without_outliers(means[:4]) == 0.0  # too few windows to say
 
 
+def with_pass_wander(t, position, wander_m: float, seed: int = 0, period_s: float = 120.0):
+    """position plus a residual that differs from pass to pass (each period_s [s] of the path: wander_m [m] times
+    a draw per pass, on a shape of its own), as a loop whose timing jitters gives a model's residual."""
+    per_pass = np.random.default_rng(seed).standard_normal(int(t[-1] // period_s) + 1)[(t // period_s).astype(int)]
+    return position + wander_m * per_pass * np.sin(2 * np.pi * t / 40.0 + 0.3)
+
+
+def size_trips(t, u, position) -> int:
+    """How often the size test trips over a record (the tests restarted after each flag)."""
+    watch, trips = ModelWatch(example_model(), FAST), 0
+    for start in range(0, t.size, 50):
+        watch.step(t[start:start + 50], u[start:start + 50], position[start:start + 50])
+        if watch.state == "drift":
+            trips += watch.size_drift
+            watch.restart_tests()
+    return trips
+
+
+def test_the_size_test_measures_how_far_passes_differ_and_still_flags_a_large_shift():
+    """A residual that differs by 4 um from pass to pass, nothing changing: the calibration's held-out windows
+    measure it, so the size test does not count such windows as change (over two records of 6000 s it tripped
+    19 times without that scale, 4 with it; the rest is the bias test's to weigh); a 20 um shift is still
+    flagged by the path test within 120 s."""
+    t, u, position = plant_record("periodic", seconds=6000.0)
+    steady, _ = watch_record(t, u, position)
+    assert 0.0 < steady.held_out_size_m < 0.6e-6, "passes that agree: a small scale"
+    assert sum(size_trips(t, u, with_pass_wander(t, position, 4e-6, seed)) for seed in (0, 1)) <= 4
+    t, u, position = plant_record("periodic", 2e-5, 3000.0, seconds=4000.0)
+    watch, flags = watch_record(t, u, with_pass_wander(t, position, 4e-6))
+    assert watch.held_out_size_m > 1.5e-6, "passes 4 um apart: a scale near it"
+    after = [(when, path_drift) for when, path_drift, _ in flags if when >= 3000.0]
+    assert after and after[0][0] <= 3120.0 and after[0][1], flags
+
+
 def test_a_path_never_retraced_is_not_judged_and_gives_no_alarm():
     watch, flags = watch_record(*plant_record("wandering", 2e-6, 1500.0))
     assert flags == [] and watch.judged_windows == 0

@@ -251,11 +251,11 @@ class PathMemory:
                   spread)
         return residual - reference, spread
 
-    def held_out_window_means(self, window_s: float, radius: float, gap_s: float, tolerance_m: float,
-                              min_coverage: float) -> np.ndarray:
-        """The mean innovation [m] of each window_s [s] of the remembered samples, each compared with its
-        PATH_NEIGHBOURS nearest of the other passes (the samples within gap_s of it left out), as a judged sample
-        is compared with the memory: what a window's mean innovation does with nothing changed.
+    def held_out_windows(self, window_s: float, radius: float, gap_s: float, tolerance_m: float,
+                         min_coverage: float) -> tuple[np.ndarray, np.ndarray]:
+        """(the mean innovation [m] of each window_s [s] of the remembered samples, their RMS [m]), each sample
+        compared with its PATH_NEIGHBOURS nearest of the other passes (the samples within gap_s of it left out),
+        as a judged sample is compared with the memory: what a window's innovations do with nothing changed.
         Windows with fewer than MIN_JUDGED or min_coverage of their samples compared are left out."""
         samples = self._times.size
         _, index = self._tree.query(self._tree.data, k=2 * PATH_NEIGHBOURS, distance_upper_bound=radius)
@@ -266,13 +266,14 @@ class PathMemory:
         _revisits(index, self._times, self._residuals, gap_s, tolerance_m, MIN_PASSES, reference, spread)
         innovation = self._residuals - reference
         slot = np.floor((self._times - self._times[0]) / window_s).astype(np.int64)
-        means = []
+        means, sizes = [], []
         for window in np.unique(slot):
             values = innovation[slot == window]
             compared = values[np.isfinite(values)]
             if compared.size >= MIN_JUDGED and compared.size >= min_coverage * values.size:
                 means.append(float(np.mean(compared)))
-        return np.array(means)
+                sizes.append(float(np.sqrt(np.mean(np.square(compared)))))
+        return np.array(means), np.array(sizes)
 
 
 def _nearest_kept(index: np.ndarray, missing: int, count: int) -> np.ndarray:
@@ -300,7 +301,7 @@ def load_kernels(model: object) -> None:
     memory.remember(t_s, features, np.cos(t_s))
     memory.build()
     memory.innovations(features, np.cos(t_s), 1.0, PASS_GAP_S, 1.0)
-    memory.held_out_window_means(4.0, 1.0, 1.0, 1.0, 0.25)
+    memory.held_out_windows(4.0, 1.0, 1.0, 1.0, 0.25)
 
 
 def thinned_to_rate(t_s: np.ndarray, rate_hz: float) -> np.ndarray:
@@ -379,6 +380,7 @@ class ModelWatch:
         self.last_innovation_rms: float | None = None
         self.last_bias_z: float | None = None  # the last judged window's |mean innovation| in its standard errors
         self.held_out_bias_m: float | None = None  # a window's mean innovation with nothing changed, RMS [m]
+        self.held_out_size_m: float | None = None  # a window's innovations' RMS with nothing changed, RMS [m]
         self.samples = 0
 
     def step(self, t_s: np.ndarray, current_a: np.ndarray, position_m: np.ndarray) -> np.ndarray:
@@ -474,28 +476,30 @@ class ModelWatch:
         if self.coverage < self.test.min_coverage or count < MIN_JUDGED:
             return
         self.judged_windows += 1
+        held_out_bias, held_out_size = self._held_out(reference)
         innovations, mean_spread = innovations[judged], float(np.mean(spreads[judged]))
         self.last_innovation_rms = float(np.sqrt(np.mean(np.square(innovations))))
-        expected = max(mean_spread + self.memory.noise_m**2, (EXPECTED_FLOOR * reference) ** 2)
+        expected = max(mean_spread + self.memory.noise_m**2, held_out_size**2, (EXPECTED_FLOOR * reference) ** 2)
         excess = math.sqrt(max(0.0, self.last_innovation_rms**2 - EXPLAINED**2 * expected))
         step = min(excess / reference - self.test.shift_allowance, self.test.shift_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.path_statistic = max(0.0, self.path_statistic + step)
         mean_variance = mean_spread + self.memory.noise_m**2 / count
         self.last_bias_z = abs(float(np.mean(innovations))) / math.sqrt(
-            max(mean_variance, self._held_out_bias(reference) ** 2, (BIAS_FLOOR * reference) ** 2))
+            max(mean_variance, held_out_bias**2, (BIAS_FLOOR * reference) ** 2))
         step = min(self.last_bias_z - self.test.bias_allowance, self.test.bias_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.bias_statistic = max(0.0, self.bias_statistic + step)
 
-    def _held_out_bias(self, reference: float) -> float:
-        """The RMS [m] of the calibration windows' mean innovations, each sample compared with its nearest of the
-        other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's mean wanders with
-        nothing changed (rms_without_outliers: one window from a pass remembered while the stage still settled
-        would set the scale alone)."""
-        if self.held_out_bias_m is None:
-            means = self.memory.held_out_window_means(self.test.window_s, self.test.path_radius, PASS_GAP_S,
-                                                      PASS_AGREEMENT * reference, self.test.min_coverage)
-            self.held_out_bias_m = rms_without_outliers(means)
-        return self.held_out_bias_m
+    def _held_out(self, reference: float) -> tuple[float, float]:
+        """(the RMS [m] of the calibration windows' mean innovations, the RMS [m] of their innovations' RMS), each
+        sample compared with its nearest of the other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be):
+        how far a window's mean wanders, and how large its innovations are, with nothing changed
+        (rms_without_outliers: one window from a pass remembered while the stage still settled would set either
+        alone)."""
+        if self.held_out_bias_m is None or self.held_out_size_m is None:
+            means, sizes = self.memory.held_out_windows(self.test.window_s, self.test.path_radius, PASS_GAP_S,
+                                                        PASS_AGREEMENT * reference, self.test.min_coverage)
+            self.held_out_bias_m, self.held_out_size_m = rms_without_outliers(means), rms_without_outliers(sizes)
+        return self.held_out_bias_m, self.held_out_size_m
 
     @property
     def path_drift(self) -> bool:
