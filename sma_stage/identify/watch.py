@@ -14,8 +14,10 @@ started where the watch started it, settles onto the stage's state):
   sample whose path comes within `path_radius` (in the memory's standard deviations) of remembered ones on at
   least two passes (PASS_GAP_S apart) whose residuals agreed is compared with the residual remembered there:
   the innovation. Per window with at least `min_coverage` of the samples it looked at so judged,
-  z = sqrt(max(0, e^2 - noise^2)) / r0 (e the innovations' RMS, noise what the sensor noise alone gives, r0 the
-  reference below) and S = max(0, S + z - shift_allowance); drift while S > shift_threshold. It sees a change
+  z = sqrt(max(0, e^2 - (EXPLAINED s)^2)) / r0 (e the innovations' RMS; s the largest of what the passes'
+  variance and the sensor noise give, the RMS of the calibration windows' innovations, each remembered sample
+  compared with the other passes only, and EXPECTED_FLOOR r0; r0 the reference below) and
+  S = max(0, S + z - shift_allowance); drift while S > shift_threshold. It sees a change
   of a fraction of the model's own error where the stage revisits ground it covered twice while calibrating;
   elsewhere it does not judge (`coverage`). Beside the innovations' size it follows their mean: per judged window,
   b = |mean innovation| / sigma, sigma the largest of: what the passes' variance and the noise give a window's
