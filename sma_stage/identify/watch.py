@@ -254,8 +254,9 @@ class PathMemory:
         return residual - reference, spread
 
     def held_out_windows(self, window_s: float, radius: float, gap_s: float, tolerance_m: float,
-                         min_coverage: float) -> tuple[np.ndarray, np.ndarray]:
-        """(the mean innovation [m] of each window_s [s] of the remembered samples, their RMS [m]), each sample
+                         min_coverage: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the index of each window_s [s] of the remembered samples, its mean innovation [m], their RMS [m]), each
+        sample
         compared with its PATH_NEIGHBOURS nearest of the other passes (the samples within gap_s of it left out),
         as a judged sample is compared with the memory: what a window's innovations do with nothing changed.
         Windows with fewer than MIN_JUDGED or min_coverage of their samples compared are left out."""
@@ -268,14 +269,15 @@ class PathMemory:
         _revisits(index, self._times, self._residuals, gap_s, tolerance_m, MIN_PASSES, reference, spread)
         innovation = self._residuals - reference
         slot = np.floor((self._times - self._times[0]) / window_s).astype(np.int64)
-        means, sizes = [], []
+        slots, means, sizes = [], [], []
         for window in np.unique(slot):
             values = innovation[slot == window]
             compared = values[np.isfinite(values)]
             if compared.size >= MIN_JUDGED and compared.size >= min_coverage * values.size:
+                slots.append(int(window))
                 means.append(float(np.mean(compared)))
                 sizes.append(float(np.sqrt(np.mean(np.square(compared)))))
-        return np.array(means), np.array(sizes)
+        return np.array(slots, dtype=np.int64), np.array(means), np.array(sizes)
 
 
 def _nearest_kept(index: np.ndarray, missing: int, count: int) -> np.ndarray:
@@ -284,13 +286,28 @@ def _nearest_kept(index: np.ndarray, missing: int, count: int) -> np.ndarray:
     return np.take_along_axis(index, order, axis=1)
 
 
+def outlier_bound(values: np.ndarray) -> float:
+    """HELD_OUT_OUTLIER robust standard deviations (MAD_TO_SIGMA times the median |value|) from 0 (inf for none)."""
+    return HELD_OUT_OUTLIER * MAD_TO_SIGMA * float(np.median(np.abs(values))) if len(values) else math.inf
+
+
 def rms_without_outliers(values: np.ndarray) -> float:
-    """The RMS of values less those more than HELD_OUT_OUTLIER robust standard deviations (MAD_TO_SIGMA times the
-    median |value|) from 0; 0 when fewer than MIN_HELD_OUT_WINDOWS are left."""
+    """The RMS of values less those beyond outlier_bound; 0 when fewer than MIN_HELD_OUT_WINDOWS are left."""
     values = np.asarray(values, dtype=float)
-    kept = values[np.abs(values) <= HELD_OUT_OUTLIER * MAD_TO_SIGMA * np.median(np.abs(values))] if values.size \
-        else values
+    kept = values[np.abs(values) <= outlier_bound(values)]
     return float(np.sqrt(np.mean(np.square(kept)))) if kept.size >= MIN_HELD_OUT_WINDOWS else 0.0
+
+
+def in_a_row_factor(slots: np.ndarray, values: np.ndarray, count: int) -> float:
+    """How much wider the mean of `count` consecutive windows spreads than `count` independent windows' would, for
+    values (each window's, slots their indices) correlated as an AR(1) with their lag-one correlation (taken about
+    0, at least 0): sqrt(1 + 2/count sum_k (count - k) rho^k)."""
+    pairs = np.flatnonzero(np.diff(slots) == 1)
+    if pairs.size < MIN_HELD_OUT_WINDOWS:
+        return 1.0
+    first, second = values[pairs], values[pairs + 1]
+    rho = max(0.0, float(np.sum(first * second) / max(math.sqrt(np.sum(first**2) * np.sum(second**2)), 1e-300)))
+    return math.sqrt(1.0 + 2.0 / count * sum((count - lag) * rho**lag for lag in range(1, count)))
 
 
 def load_kernels(model: object) -> None:
@@ -382,7 +399,7 @@ class ModelWatch:
         self.last_innovation_rms: float | None = None
         self.last_bias_z: float | None = None  # the last judged window's |mean innovation| in its standard errors
         self.held_out_bias_m: float | None = None  # a window's mean innovation with nothing changed, RMS [m]
-        self.held_out_size_m: float | None = None  # a window's innovations' RMS with nothing changed, RMS [m]
+        self.held_out_size_m: float | None = None  # a window's innovations' RMS with nothing changed, largest [m]
         self.samples = 0
 
     def step(self, t_s: np.ndarray, current_a: np.ndarray, position_m: np.ndarray) -> np.ndarray:
@@ -481,7 +498,8 @@ class ModelWatch:
         held_out_bias, held_out_size = self._held_out(reference)
         innovations, mean_spread = innovations[judged], float(np.mean(spreads[judged]))
         self.last_innovation_rms = float(np.sqrt(np.mean(np.square(innovations))))
-        expected = max(mean_spread + self.memory.noise_m**2, held_out_size**2, (EXPECTED_FLOOR * reference) ** 2)
+        expected = max(mean_spread + self.memory.noise_m**2, (held_out_size / EXPLAINED) ** 2,
+                       (EXPECTED_FLOOR * reference) ** 2)
         excess = math.sqrt(max(0.0, self.last_innovation_rms**2 - EXPLAINED**2 * expected))
         step = min(excess / reference - self.test.shift_allowance, self.test.shift_threshold / (WINDOWS_TO_TRIP - 0.5))
         self.path_statistic = max(0.0, self.path_statistic + step)
@@ -492,15 +510,21 @@ class ModelWatch:
         self.bias_statistic = max(0.0, self.bias_statistic + step)
 
     def _held_out(self, reference: float) -> tuple[float, float]:
-        """(the RMS [m] of the calibration windows' mean innovations, the RMS [m] of their innovations' RMS), each
-        sample compared with its nearest of the other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be):
-        how far a window's mean wanders, and how large its innovations are, with nothing changed
-        (rms_without_outliers: one window from a pass remembered while the stage still settled would set either
-        alone)."""
+        """(the bias test's scale, the size test's level) [m], from the calibration's windows, each sample compared
+        with its nearest of the other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's
+        mean wanders with nothing changed (the means' RMS, widened by in_a_row_factor over WINDOWS_TO_TRIP: where
+        each pass's residual differs, windows in a row share it and trip the test together), and how large its
+        innovations are (the largest window RMS). Outliers (outlier_bound) are left out: one window from a pass
+        remembered while the stage still settled would set either alone."""
         if self.held_out_bias_m is None or self.held_out_size_m is None:
-            means, sizes = self.memory.held_out_windows(self.test.window_s, self.test.path_radius, PASS_GAP_S,
-                                                        PASS_AGREEMENT * reference, self.test.min_coverage)
-            self.held_out_bias_m, self.held_out_size_m = rms_without_outliers(means), rms_without_outliers(sizes)
+            slots, means, sizes = self.memory.held_out_windows(self.test.window_s, self.test.path_radius,
+                                                               PASS_GAP_S, PASS_AGREEMENT * reference,
+                                                               self.test.min_coverage)
+            kept = np.abs(means) <= outlier_bound(means)
+            self.held_out_bias_m = rms_without_outliers(means) * in_a_row_factor(slots[kept], means[kept],
+                                                                                 WINDOWS_TO_TRIP)
+            kept_sizes = sizes[sizes <= outlier_bound(sizes)]
+            self.held_out_size_m = float(kept_sizes.max()) if kept_sizes.size >= MIN_HELD_OUT_WINDOWS else 0.0
         return self.held_out_bias_m, self.held_out_size_m
 
     @property
