@@ -29,6 +29,8 @@ LOAD_STEP_S = 4200.0  # the stage's load step [s of simulated time]: after the r
 # numba cache beside a CPU-bound process; the watch calibrates for 1100 s after it)
 LOAD_STEP_N = 8.0  # the 2 N of the bench is flagged too (bench/bench_watch.py); here the test must not be marginal
 PERIOD_S = 100.0  # the tracked sine's
+TRACKED_FRACTION = 0.25  # the sine's amplitude over the excitation's range of positions: at 0.3 its low end was
+# beyond what -5 A reaches after the 8 N step in some runs, and the current's limit, not the model, set the error
 COMPARED_S = 300.0  # tracking error compared over this long before the step and after the swap
 # At 50x the position reaches the loop a part of a 0.5 s step late, so each pass along the path differs and the GPI's
 # residual wanders some fifty times more than in process (bias_held_out_m 5-10 um against 0.1 um): with the
@@ -128,7 +130,7 @@ def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
             refitted = client.get_parameters("compensator", ["model"])["model"]
             positions = [position for _, position in tracking.states]
             low, high = min(positions), max(positions)
-            tracking.middle, tracking.amplitude = 0.5 * (low + high), 0.3 * (high - low)
+            tracking.middle, tracking.amplitude = 0.5 * (low + high), TRACKED_FRACTION * (high - low)
             started_s = client.now_s()
             print(f"tracking from {started_s:.0f} s of simulated time")
             assert started_s + 1500.0 < LOAD_STEP_S, f"the refit took until {started_s:.0f} s of simulated time"

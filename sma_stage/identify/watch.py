@@ -15,14 +15,15 @@ started where the watch started it, settles onto the stage's state):
   least two passes (PASS_GAP_S apart) whose residuals agreed is compared with the residual remembered there:
   the innovation. Per window with at least `min_coverage` of the samples it looked at so judged,
   z = sqrt(max(0, e^2 - (EXPLAINED s)^2)) / r0 (e the innovations' RMS; s the largest of what the passes'
-  variance and the sensor noise give, the RMS of the calibration windows' innovations, each remembered sample
-  compared with the other passes only, and EXPECTED_FLOOR r0; r0 the reference below) and
+  variance and the sensor noise give, half the largest RMS of a calibration window's innovations, each
+  remembered sample compared with the other passes only, and EXPECTED_FLOOR r0; r0 the reference below) and
   S = max(0, S + z - shift_allowance); drift while S > shift_threshold. It sees a change
   of a fraction of the model's own error where the stage revisits ground it covered twice while calibrating;
   elsewhere it does not judge (`coverage`). Beside the innovations' size it follows their mean: per judged window,
   b = |mean innovation| / sigma, sigma the largest of: what the passes' variance and the noise give a window's
   mean; the RMS of the calibration windows' mean innovations, each remembered sample compared with its nearest
-  of the other passes only (how far a window's mean wanders with nothing changed, measured); BIAS_FLOOR r0. Then
+  of the other passes only (how far a window's mean wanders with nothing changed, measured), widened by how
+  windows in a row share it (in_a_row_factor); BIAS_FLOOR r0. Then
   S_b = max(0, S_b + b - bias_allowance) (capped as the size's); drift while S_b > bias_threshold. It sees a
   change small against the model's error but steady (an ambient drift of a fraction of a kelvin) that the size,
   which counts anything under shift_allowance r0 as no change, does not.
