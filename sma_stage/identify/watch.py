@@ -257,9 +257,8 @@ class PathMemory:
     def held_out_windows(self, window_s: float, radius: float, gap_s: float, tolerance_m: float,
                          min_coverage: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(the index of each window_s [s] of the remembered samples, its mean innovation [m], their RMS [m]), each
-        sample
-        compared with its PATH_NEIGHBOURS nearest of the other passes (the samples within gap_s of it left out),
-        as a judged sample is compared with the memory: what a window's innovations do with nothing changed.
+        sample compared with its PATH_NEIGHBOURS nearest of the other passes (the samples within gap_s of it left
+        out), as a judged sample is compared with the memory: what a window's innovations do with nothing changed.
         Windows with fewer than MIN_JUDGED or min_coverage of their samples compared are left out."""
         samples = self._times.size
         _, index = self._tree.query(self._tree.data, k=2 * PATH_NEIGHBOURS, distance_upper_bound=radius)
