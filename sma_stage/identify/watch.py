@@ -286,15 +286,18 @@ def _nearest_kept(index: np.ndarray, missing: int, count: int) -> np.ndarray:
     return np.take_along_axis(index, order, axis=1)
 
 
-def outlier_bound(values: np.ndarray) -> float:
-    """HELD_OUT_OUTLIER robust standard deviations (MAD_TO_SIGMA times the median |value|) from 0 (inf for none)."""
-    return HELD_OUT_OUTLIER * MAD_TO_SIGMA * float(np.median(np.abs(values))) if len(values) else math.inf
+def inliers(values: np.ndarray) -> np.ndarray:
+    """Which values lie within HELD_OUT_OUTLIER robust standard deviations (MAD_TO_SIGMA times the median |value|)
+    of 0."""
+    magnitudes = np.abs(np.asarray(values, dtype=float))
+    return magnitudes <= HELD_OUT_OUTLIER * MAD_TO_SIGMA * np.median(magnitudes) if magnitudes.size else \
+        np.ones(0, dtype=bool)
 
 
 def rms_without_outliers(values: np.ndarray) -> float:
-    """The RMS of values less those beyond outlier_bound; 0 when fewer than MIN_HELD_OUT_WINDOWS are left."""
+    """The RMS of the inliers of values; 0 when fewer than MIN_HELD_OUT_WINDOWS are left."""
     values = np.asarray(values, dtype=float)
-    kept = values[np.abs(values) <= outlier_bound(values)]
+    kept = values[inliers(values)]
     return float(np.sqrt(np.mean(np.square(kept)))) if kept.size >= MIN_HELD_OUT_WINDOWS else 0.0
 
 
@@ -514,16 +517,16 @@ class ModelWatch:
         with its nearest of the other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's
         mean wanders with nothing changed (the means' RMS, widened by in_a_row_factor over WINDOWS_TO_TRIP: where
         each pass's residual differs, windows in a row share it and trip the test together), and how large its
-        innovations are (the largest window RMS). Outliers (outlier_bound) are left out: one window from a pass
-        remembered while the stage still settled would set either alone."""
-        if self.held_out_bias_m is None or self.held_out_size_m is None:
+        innovations are (the largest window RMS). Only inliers count: one window from a pass remembered while the
+        stage still settled would set either alone."""
+        if self.held_out_size_m is None:  # both are set together, once
             slots, means, sizes = self.memory.held_out_windows(self.test.window_s, self.test.path_radius,
                                                                PASS_GAP_S, PASS_AGREEMENT * reference,
                                                                self.test.min_coverage)
-            kept = np.abs(means) <= outlier_bound(means)
+            kept = inliers(means)
             self.held_out_bias_m = rms_without_outliers(means) * in_a_row_factor(slots[kept], means[kept],
                                                                                  WINDOWS_TO_TRIP)
-            kept_sizes = sizes[sizes <= outlier_bound(sizes)]
+            kept_sizes = sizes[inliers(sizes)]
             self.held_out_size_m = float(kept_sizes.max()) if kept_sizes.size >= MIN_HELD_OUT_WINDOWS else 0.0
         return self.held_out_bias_m, self.held_out_size_m
 
