@@ -70,6 +70,25 @@ def test_recovers_known_parameters_from_a_perturbed_start():
     assert np.max(relative_errors(result.parameters, TRUTH)) < 1e-6
 
 
+def test_held_parameters_keep_the_start_values_and_the_others_are_still_found():
+    _, u, y = identification_data(noise=5e-6, seed=1)
+    factors = 1.0 + 0.15 * np.where(np.arange(11) % 2 == 0, 1.0, -1.0)
+    start = GPIParameters.from_array(RAW_TRUTH.as_array() * factors).replace(a2=RAW_TRUTH.a2, a6=RAW_TRUTH.a6)
+    result = fit_gpi(u, y, operators=OPERATORS, initial=start, hold=("a2", "a6"))
+    assert (result.parameters.a2, result.parameters.a6) == (RAW_TRUTH.a2, RAW_TRUTH.a6)
+    moved = [name for name in ("a3", "a4", "a5", "a7", "a8", "a9") if getattr(result.parameters, name) != getattr(start, name)]
+    assert len(moved) == 6
+    assert result.standard_errors["a2"] == result.standard_errors["a6"] == 0.0
+    free = [name for name in TRUTH.to_dict() if name not in ("a2", "a6")]
+    errors = np.array([result.standard_errors[name] for name in free])
+    assert np.all(np.isfinite(errors)) and np.all(errors > 0)
+    deviation = [abs(getattr(result.parameters, name) - getattr(TRUTH, name)) for name in free] / errors
+    assert np.max(deviation) < 4.0
+    assert result.parameter_count == 8 and "Held at the warm start: a2, a6" in result.message
+    wrong = fit_gpi(u, y, operators=OPERATORS, initial=start.replace(a2=0.8 * RAW_TRUTH.a2), hold=("a2",))
+    assert wrong.parameters.a2 == 0.8 * RAW_TRUTH.a2 and wrong.cost > 2.0 * result.cost
+
+
 def test_noisy_fit_lies_within_a_few_standard_errors():
     _, u, y = identification_data(noise=5e-6, seed=1)
     result = fit_gpi(u, y, operators=OPERATORS)
@@ -192,7 +211,8 @@ def test_bad_options_are_refused():
     _, u, y = identification_data(samples=101)
     for options in ({"operators": 0}, {"regressors": np.ones((5, 1))}, {"starts": 0}, {"max_iterations": 0},
                     {"initial": {"a1": 1.0}}, {"tolerance": 0.0}, {"tolerance": 1.0}, {"tolerance": True},
-                    {"tolerance": float("nan")}):
+                    {"tolerance": float("nan")}, {"hold": ("a2",)}, {"hold": ("a1",), "initial": RAW_TRUTH},
+                    {"hold": ("a10",), "initial": RAW_TRUTH}):
         with pytest.raises(InputError):
             fit_gpi(u, y, **options)
 

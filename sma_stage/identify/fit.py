@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +55,7 @@ NULL_TOLERANCE = 1e-10  # singular values of the column-scaled Jacobian below th
 # Searched: a2..a9 and the density decay per operator a11*a9 (bounded, so that no operator's weight
 # runs away from the others); a1 is held (the scale symmetry) and a10 projected.
 FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11*a9")
+HOLDABLE = FREE_NAMES[:8]  # what fit_gpi's hold may name: the searched parameters a2..a9 (index = their column)
 DECAY_LIMITS = (-3.0, 30.0)  # bounds of a11 * largest threshold: the last weight is e^3 .. e^-30 of the first
 _FREE_COLUMNS = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # their columns among the sensitivities (a1..a9, a11)
 SCALE_LIMIT = 1e3  # normalised a1, a5 and largest threshold: at most this many output spans each
@@ -350,9 +351,10 @@ class _Search:
 
 def _search(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
             max_iterations: int, progress: Callable[[str], None] | None = None,
-            tolerance: float = TOLERANCE) -> _Search:
-    """Bounded Levenberg-Marquardt (levenberg_marquardt) from start, to tolerance or max_iterations evaluations."""
-    return _converge(u, y, regressors, operators, start, max_iterations, tolerance, progress)
+            tolerance: float = TOLERANCE, held: frozenset[str] = frozenset()) -> _Search:
+    """Bounded Levenberg-Marquardt (levenberg_marquardt) from start, to tolerance or max_iterations evaluations;
+    the parameters named in held (of HOLDABLE) stay at start's values."""
+    return _converge(u, y, regressors, operators, start, max_iterations, tolerance, progress, held)
 
 
 def _glance(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
@@ -362,8 +364,10 @@ def _glance(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
 
 
 def _converge(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
-              evaluations: int, tolerance: float, progress: Callable[[str], None] | None = None) -> _Search:
+              evaluations: int, tolerance: float, progress: Callable[[str], None] | None = None,
+              held: frozenset[str] = frozenset()) -> _Search:
     problem, a1, x0, low, high, free = _setup(u, y, regressors, operators, start, progress)
+    free[[HOLDABLE.index(name) for name in held]] = False
 
     def full(z: np.ndarray) -> np.ndarray:
         x = x0.copy()
@@ -537,7 +541,7 @@ def _starts(u: np.ndarray, y: np.ndarray, operators: int, starts: int | Sequence
 def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int,
                starts: Sequence[GPIParameters], max_iterations: int,
                progress: Callable[[str], None] | None, refine: bool = True,
-               tolerance: float = TOLERANCE) -> tuple[_Search, int]:
+               tolerance: float = TOLERANCE, held: frozenset[str] = frozenset()) -> tuple[_Search, int]:
     """Converge several starts on a thinned copy and refine the best on all samples (one start: straight
     to all samples); refine False: the best on the thinned copy (its cost on that copy), for comparing
     operator counts before only the chosen one is refined. Returns the search and the iterations spent."""
@@ -549,7 +553,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
         best = None
         for number, candidate in enumerate(starts, 1):
             found = _search(u[screen], y[screen], regressors[screen], operators, candidate,
-                            max_iterations if whole else SCREEN_MAX_ITERATIONS, tolerance=tolerance)
+                            max_iterations if whole else SCREEN_MAX_ITERATIONS, tolerance=tolerance, held=held)
             spent += found.iterations
             _report(progress, f"{operators} operators, finalist {number}/{len(starts)} on {screen.size} "
                     f"samples: cost {found.cost:.6g}")
@@ -558,7 +562,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
         if whole or not refine:
             return best, spent
         start = _start_from(best)
-    found = _search(u, y, regressors, operators, start, max_iterations, progress, tolerance)
+    found = _search(u, y, regressors, operators, start, max_iterations, progress, tolerance, held)
     _report(progress, f"{operators} operators on {u.size} samples: cost {found.cost:.6g}, "
             f"{found.iterations} iterations")
     return found, spent + found.iterations
@@ -572,7 +576,8 @@ def _start_from(found: _Search) -> GPIParameters:
 def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial: GPIParameters | None = None,
             output_unit: str = "m", regressors: np.ndarray | None = None,
             starts: int | Sequence[GPIParameters] | None = None, max_iterations: int = DEFAULT_MAX_ITERATIONS,
-            progress: Callable[[str], None] | None = None, tolerance: float = TOLERANCE) -> FitResult:
+            progress: Callable[[str], None] | None = None, tolerance: float = TOLERANCE,
+            hold: Collection[str] = ()) -> FitResult:
     """Fit a1..a11 to input u [A] and output y [output_unit] (y ~ GPI(u) + regressors @ c).
 
     regressors: (N, m) columns entering linearly (e.g. time for a drift), solved with a10 at every
@@ -590,6 +595,11 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     tolerance: where each search stops (levenberg_marquardt's, relative); a looser one for a fit that
     only compares costs, e.g. PROFILE_TOLERANCE.
 
+    hold: names among HOLDABLE (a2..a9) kept at initial's values (initial required; with operators None a
+    held a9 is carried to each count as the same largest threshold), e.g. the envelopes' slopes a2, a6 where
+    the data do not reach the envelopes' knees; their standard errors are 0 and they do not count as
+    parameters.
+
     The normalised a1, a5 and largest threshold are held within SCALE_LIMIT output spans during the
     search; a count whose result still fails scale_problems is passed over (the message says so), and
     InputError is raised when every count fails.
@@ -598,16 +608,31 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     u, y = check_data(u, y, matrix)
     if initial is not None and not isinstance(initial, GPIParameters):
         raise InputError(f"initial must be GPIParameters, got {type(initial).__name__}")
+    held = _checked_hold(hold, initial)
     scale = float(np.ptp(y))
     if not math.isfinite(scale) or scale == 1.0:
-        return _fit_gpi(u, y, operators, initial, output_unit, matrix, starts, max_iterations, progress, tolerance)
+        return _fit_gpi(u, y, operators, initial, output_unit, matrix, starts, max_iterations, progress, tolerance,
+                        held)
     if isinstance(starts, Sequence):
         starts = [output_scaled(start, 1.0 / scale) if isinstance(start, GPIParameters) else start
                   for start in starts]
     initial = None if initial is None else output_scaled(initial, 1.0 / scale)
     found = _fit_gpi(u, y / scale, operators, initial, output_unit, matrix, starts, max_iterations, progress,
-                     tolerance)
+                     tolerance, held)
     return _output_scaled_result(found, scale, y)
+
+
+def _checked_hold(hold: Collection[str], initial: GPIParameters | None) -> frozenset[str]:
+    """fit_gpi's hold as a set; InputError for a name outside HOLDABLE or a hold without a warm start."""
+    if isinstance(hold, str):
+        hold = (hold,)
+    held = frozenset(hold)
+    unknown = sorted(held - set(HOLDABLE))
+    if unknown:
+        raise InputError(f"hold may name {', '.join(HOLDABLE)}; got {', '.join(map(str, unknown))}")
+    if held and initial is None:
+        raise InputError("hold keeps parameters at the warm start's values: give initial")
+    return held
 
 
 OUTPUT_SCALE_POWERS = {"a1": 1, "a4": 1, "a5": 1, "a8": 1, "a9": 1, "a11": -1}  # how each parameter scales with y
@@ -633,7 +658,8 @@ def _output_scaled_result(found: FitResult, scale: float, y: np.ndarray) -> FitR
 
 def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIParameters | None, output_unit: str,
              matrix: np.ndarray, starts: int | Sequence[GPIParameters] | None, max_iterations: int,
-             progress: Callable[[str], None] | None, tolerance: float = TOLERANCE) -> FitResult:
+             progress: Callable[[str], None] | None, tolerance: float = TOLERANCE,
+             held: frozenset[str] = frozenset()) -> FitResult:
     """fit_gpi on checked data, y of any scale (fit_gpi gives it one of unit span)."""
     clock = time.perf_counter()
     if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)) or max_iterations < 1:
@@ -658,7 +684,7 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
         else:  # a large record: the other counts start from where the reference count's finalists led
             count_starts = _carried([_start_from(fits[reference][0])], reference, count)
         fits[count] = _fit_count(u, y, matrix, count, count_starts, int(max_iterations), progress,
-                                 refine=not several, tolerance=tolerance)
+                                 refine=not several, tolerance=tolerance, held=held)
     fits = {count: fits[count] for count in counts}
     costs = {count: found.cost for count, (found, _) in fits.items()}
     searches = {count: found for count, (found, _) in fits.items()}
@@ -667,7 +693,7 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
     iterations += sum(spent for _, spent in fits.values())
     compared = thinned(u, SCREEN_SAMPLES).size if several else u.size  # the samples the counts were compared on
     if compared < u.size:
-        found = _search(u, y, matrix, chosen, _start_from(found), int(max_iterations), progress, tolerance)
+        found = _search(u, y, matrix, chosen, _start_from(found), int(max_iterations), progress, tolerance, held)
         iterations += found.iterations
         params, coefficients = _final_parameters(u, y, matrix, chosen, found, output_unit)
         if scale_problems(params, chosen, y):
@@ -680,8 +706,10 @@ def _fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None, initial: GPIPa
         note += f" Operators chosen: {chosen} (RMS % by count{where} {rms})."
     if refused:
         note += f" Refused as badly scaled: {' / '.join(refused)}."
+    if held:
+        note += f" Held at the warm start: {', '.join(sorted(held))}."
     result = _result(u, y, matrix, chosen, found, params, coefficients, iterations, time.perf_counter() - clock,
-                     note)
+                     note, held)
     return dataclasses.replace(result, by_count=by_count) if len(counts) > 1 else result
 
 
@@ -738,22 +766,22 @@ def _final_parameters(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, oper
 
 def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, found: _Search,
             params: GPIParameters, coefficients: np.ndarray, iterations: int, seconds: float,
-            message: str) -> FitResult:
+            message: str, held: frozenset[str] = frozenset()) -> FitResult:
     predicted = forward(u, params, operators) + regressors @ coefficients
     residual = y - predicted
     cost = float(residual @ residual)
-    errors, regressor_errors = _standard_errors(u, params, operators, regressors, cost)
+    errors, regressor_errors = _standard_errors(u, params, operators, regressors, cost, held)
     return FitResult(
         parameters=params, operators=operators, standard_errors=errors,
         regressor_coefficients=coefficients, predicted=predicted, residual=residual,
         identification=error_metrics(y, predicted), iterations=iterations, seconds=seconds, cost=cost,
-        parameter_count=len(FREE_NAMES) + 1 + regressors.shape[1], success=found.status > 0,
+        parameter_count=len(FREE_NAMES) + 1 - len(held) + regressors.shape[1], success=found.status > 0,
         message=message, regressor_standard_errors=regressor_errors,
     )
 
 
 def _standard_errors(u: np.ndarray, params: GPIParameters, operators: int, regressors: np.ndarray,
-                     cost: float) -> tuple[dict[str, float], np.ndarray]:
+                     cost: float, held: frozenset[str] = frozenset()) -> tuple[dict[str, float], np.ndarray]:
     """sigma^2 (J^T J)^-1, sigma^2 = SSR / (N - p), in the normalised form: free a1..a9, a11 and c;
     a10 = 1 / sum exp(-a11 r_i) follows from them (delta method). Infinite where the data cannot tell
     a parameter apart (e.g. a constant regressor column against a common shift of a4 and a8).
@@ -776,8 +804,11 @@ def _standard_errors(u: np.ndarray, params: GPIParameters, operators: int, regre
     rows[1 + SENSITIVITY_COLUMNS:] = regressors.T
     columns = SENSITIVITY_COLUMNS + m
     functions = np.vstack([np.eye(columns), np.r_[a10_gradient, np.zeros(columns - 10)]])
-    variances = _variances(rows[1:], cost / max(u.size - columns, 1), functions)
     free_names = [name for name in PARAMETER_NAMES if name != "a10"]
+    known = [free_names.index(name) for name in held]  # held: no column, and no part in a10's spread
+    rows[[1 + column for column in known]] = 0.0
+    functions[:, known] = 0.0
+    variances = _variances(rows[1:], cost / max(u.size - columns + len(known), 1), functions)
     errors = {name: float(np.sqrt(variances[k])) for k, name in enumerate(free_names)}
     errors["a10"] = float(np.sqrt(variances[-1]))
     return {name: errors[name] for name in PARAMETER_NAMES}, np.sqrt(variances[10:-1])
