@@ -78,7 +78,7 @@ run_tests() {
     "$PY" -m ruff check .
     local status=0
     # Two workers (the machines have two cores); a test file stays on one worker, so its cached fits are shared.
-    "$PY" -m pytest -p no:cacheprovider -n 2 --dist loadfile "$@" || status=$?
+    "$PY" -m pytest -p no:cacheprovider -n 2 --dist loadfile --durations=20 "$@" || status=$?
     if [ "$status" -eq 5 ]; then
         say "pytest collected no tests: counted as a failure"
         exit 1
