@@ -84,6 +84,8 @@ def test_a_hysteresis_refit_holds_the_dynamics_and_follows_a_load_step():
     loaded = stage_record(8.0, seed=3)
     found = refit_hysteresis(loaded, in_force, 0.25)
     assert found.model.effects == in_force.effects == SHIPPED.effects, "the thermal lag is held"
+    kept = [(found.model.parameters.a2, found.model.parameters.a6), (in_force.parameters.a2, in_force.parameters.a6)]
+    assert kept[0] == kept[1] and found.model.parameters.a3 != in_force.parameters.a3, "the envelopes' slopes held"
     decision = judge_swap(found.model, in_force, loaded, found.scored_from)
     assert decision.swap and decision.candidate.rms_pct < 0.5 * decision.in_force.rms_pct, decision.reason
     assert found.model.metadata["held_out_rms"] > 0.0 and "held" in found.report["refit"]
