@@ -28,7 +28,7 @@ from sma_stage.control.compensator import imc_gains
 from sma_stage.identify.history import started_from
 from sma_stage.identify.pipeline import REFIT_HELD, identify_recording, refit_hysteresis
 from sma_stage.io.series import make_series
-from sma_stage.plant import StageSimulator
+from sma_stage.plant import StageSimulator, simulate
 from sma_stage.plant.config import Effects
 from sma_stage.signals import paper_identification_signal
 
@@ -46,11 +46,10 @@ HOLD_S = 300.0
 
 def identified(seed: int):
     """(the GPI identified on the excitation, (lowest, highest) position it reached [m])."""
-    stage = StageSimulator(seed=seed)
     t = np.arange(0.0, EXCITE_S, STEP_S)
-    current = paper_identification_signal(t, 5.0, 3.6, 250.0, EXCITE_S)
-    position = np.array([stage.step(float(value), STEP_S).measured_position_m for value in current])
-    found = identify_recording(make_series(t + STEP_S, current, position, "the excitation"), holdout_fraction=0.25,
+    run = simulate(paper_identification_signal(t, duration_s=EXCITE_S), STEP_S, seed=seed)
+    position = run.measured_position_m
+    found = identify_recording(make_series(run.t_s, run.current_a, position, "the excitation"), holdout_fraction=0.25,
                                operators=5, diagnose_rounds=1, families=("gpi",))
     return found.model.without_state(), (float(position.min()), float(position.max()))
 
