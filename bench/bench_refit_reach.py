@@ -25,6 +25,7 @@ import numpy as np
 
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import imc_gains
+from sma_stage.identify.fit import HOLDABLE
 from sma_stage.identify.history import started_from
 from sma_stage.identify.pipeline import REFIT_HELD, identify_recording, refit_hysteresis
 from sma_stage.io.series import make_series
@@ -134,13 +135,21 @@ def main() -> int:
     parser.add_argument("--held", default=f"{','.join(REFIT_HELD)};",
                         help="sets of GPI parameters the refit keeps, ';'-separated, each comma-separated (empty: none)")
     args = parser.parse_args()
+    try:
+        seeds = [int(value) for value in args.seeds.split(",")]
+        starts = [float(value) for value in args.starts.split(",")]
+    except ValueError as error:
+        parser.error(f"--seeds and --starts take comma-separated numbers ({error})")
     held_sets = [tuple(name for name in group.split(",") if name) for group in args.held.split(";")]
+    unknown = sorted({name for held in held_sets for name in held} - set(HOLDABLE))
+    if unknown:
+        parser.error(f"--held may name {', '.join(HOLDABLE)}; got {', '.join(unknown)}")
     print("| seed | record from [s after the step] | refit | held-out RMS % | reach at -5 / +5 A [um] "
           "| stage's [um] | record's lowest [um] | tracking after / before: 30 %, 45 % sine |")
     print("|---|---|---|---|---|---|---|---|")
-    for seed in (int(value) for value in args.seeds.split(",")):
+    for seed in seeds:
         model, stroke = identified(seed)
-        for start in (float(value) for value in args.starts.split(",")):
+        for start in starts:
             for row in case(model, stroke, seed, start, held_sets):
                 held_out = "" if row["held_out"] is None else f"{row['held_out']:.2f}"
                 print(f"| {row['seed']} | {row['start']:g} | {row['refit']} | {held_out} | "
