@@ -100,7 +100,8 @@ class TrackingRun:
     """One tracking run: time [s simulated, 0 where the signal starts, negative while settling], setpoint and
     measured position [m], the last current command [A] at each sample; errors [% of stroke] for t >= 0;
     the change of current_cmd from one message to the next over t >= 0 (RMS, 99th percentile) [% of
-    MAX_CURRENT_A]; the pace the run achieved [simulated s per wall s]."""
+    MAX_CURRENT_A]; the pace the run achieved [simulated s per wall s]; the longest time between two setpoints
+    the demo published [s simulated] (step_s when it kept up: over it the stage held the last one)."""
 
     name: str
     t: np.ndarray
@@ -112,6 +113,7 @@ class TrackingRun:
     current_step_rms_pct: float = float("nan")
     current_step_p99_pct: float = float("nan")
     pace: float = float("nan")  # simulated s per wall s achieved over the run
+    setpoint_gap_s: float = float("nan")  # the longest time between two setpoints published [s simulated]
 
 
 class StageSession:
@@ -138,6 +140,7 @@ class StageSession:
         self.commands: list[tuple[float, float]] = []
         self.profile: Callable[[float], float] | None = None
         self.profile_start_s = 0.0
+        self.published_s: list[float] = []  # when each setpoint of the profile was published [s simulated]
         self.setpoint_pub = node.create_publisher(Float64, "setpoint", COMMAND_QOS)
         node.create_subscription(JointState, "joint_states", self.on_state,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
@@ -153,7 +156,9 @@ class StageSession:
         with self._lock:
             profile, start = self.profile, self.profile_start_s
         if profile is not None:
-            self.setpoint_pub.publish(self._float(data=float(profile(self.now_s() - start))))
+            now_s = self.now_s()
+            self.setpoint_pub.publish(self._float(data=float(profile(now_s - start))))
+            self.published_s.append(now_s)
 
     def on_state(self, message: object) -> None:
         """Record the stage position [m] at its header stamp [s]."""
@@ -196,6 +201,7 @@ class StageSession:
         with self._lock:
             self.profile_start_s = start = self.now_s()
             self.profile = profile
+            self.published_s = []
         stop = start + simulated_s
         try:
             wait_for(lambda: self.now_s() >= stop, 3.0 * simulated_s / self.time_scale + 10.0, "the end of a run",
@@ -205,6 +211,13 @@ class StageSession:
                 self.profile = None
         wait_for(lambda: self.stamps[-1] >= stop, 10.0, "joint_states up to the end of the run", check)
         return start
+
+    def longest_setpoint_gap_s(self) -> float:
+        """The longest time between two setpoints of the last profile published [s simulated] (NaN with fewer
+        than two)."""
+        with self._lock:
+            published = np.array(self.published_s)
+        return float(np.max(np.diff(published))) if published.size > 1 else float("nan")
 
     def prime(self, setpoint_m: float, timeout_s: float, check: Callable[[], None]) -> None:
         """Publish one setpoint [m] and wait for a current command in answer (the compensator's first one
@@ -247,7 +260,7 @@ def tracking_run(session: StageSession, name: str, stroke: tuple[float, float], 
     steps = current_steps_pct(session.commands_between(start + lead_s, start + lead_s + settings.run_s))
     return TrackingRun(name, t - lead_s, setpoint, position, session.commands_at(stamps),
                        float(scale * np.sqrt(np.mean(error**2))), float(scale * np.max(np.abs(error))),
-                       *steps, pace)
+                       *steps, pace, session.longest_setpoint_gap_s())
 
 
 def current_steps_pct(commands: np.ndarray) -> tuple[float, float]:
@@ -507,9 +520,11 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
           f"{100 * settings.stroke_fraction:g} % of it, {settings.run_s:g} s, through the exact inverse alone "
           f"(feedforward) and with the PI loop (the compensator's default: gains derived from the model); error "
           f"in % of the stroke, current_cmd's change from one message to the next in % of {MAX_CURRENT_A:g} A, "
-          f"the pace achieved in simulated s per wall s (the stage's time_scale when every node keeps up), plots in {out_dir / 'tracking.png'}:")
+          f"the pace achieved in simulated s per wall s (the stage's time_scale when every node keeps up) and the "
+          f"longest time between two setpoints the demo published, in simulated s ({settings.step_s:g} when it "
+          f"kept up), plots in {out_dir / 'tracking.png'}:")
     print(f"   {'compensator model, mode':40s} {'rms %':>8s} {'max %':>8s} {'step rms %':>11s} {'step p99 %':>11s} "
-          f"{'pace':>6s}")
+          f"{'pace':>6s} {'gap s':>6s}")
     for key in RUN_ORDER:
         run = result["runs"].get(key)
         if run is None:
@@ -517,7 +532,7 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
         else:
             still = np.ptp(run.current[np.isfinite(run.current)]) == 0.0
             print(f"   {key:40s} {run.rms_pct:8.3f} {run.max_pct:8.2f} {run.current_step_rms_pct:11.2f} "
-                  f"{run.current_step_p99_pct:11.2f} {run.pace:6.1f}"
+                  f"{run.current_step_p99_pct:11.2f} {run.pace:6.1f} {run.setpoint_gap_s:6.1f}"
                   + (f"   (current_cmd stayed at {run.current[-1]:g} A throughout)" if still else ""))
     print(f"   wall time from the nodes' launch to their exit: {seconds['total']:.1f} s")
 

@@ -1,6 +1,7 @@
 """The installed node executables as separate processes: excite, refit, the compensator receives the fitted
 parameters, and a setpoint then drives the simulated stage through the compensator (a short demo run)."""
 
+import gc
 import json
 import os
 import shutil
@@ -8,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+import weakref
 
 import numpy as np
 import pytest
@@ -166,6 +168,31 @@ def test_executables_excite_refit_push_and_track(tmp_path, stage_backend):
                      nodes.check_running, poll_s=0.05)
         exits = nodes.stop_all()
     assert exits == {"stage_node": 0, "compensator_node": 0, "identification_node": 0}, exits
+
+
+class _Cyclic:
+    def __init__(self) -> None:
+        self.me = self
+
+
+def test_open_ros_clients_keep_the_objects_before_them_out_of_full_collections():
+    """While RosClients are open (two at once here), what the process held before the first is frozen out of the
+    garbage collector (a full collection paused the demo's setpoints 0.3-0.7 s); all of it is given back when
+    the last one closes, and what the clients' time created is still collected."""
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    frozen_before = gc.get_freeze_count()
+    with RosClient(domain, "freeze_test"):
+        frozen = gc.get_freeze_count()
+        assert frozen > 10_000, frozen  # the modules, numpy's and rclpy's objects among them
+        with RosClient(domain, "freeze_test_2"):
+            assert gc.get_freeze_count() >= frozen
+        assert gc.get_freeze_count() >= frozen, "one client still open"
+        in_a_cycle = _Cyclic()
+        collected = weakref.ref(in_a_cycle)
+        del in_a_cycle
+        gc.collect()
+        assert collected() is None, "garbage made while a client is open is still collected"
+    assert gc.get_freeze_count() == frozen_before
 
 
 def test_node_processes_are_stopped_when_the_block_fails(tmp_path):

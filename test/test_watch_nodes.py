@@ -46,6 +46,7 @@ class Tracking:
     def __init__(self, client: RosClient) -> None:
         self.client, self.middle, self.amplitude = client, 0.0, 0.0
         self.published_tick_s: float | None = None  # the stage time [s] the last setpoint was published for
+        self.longest_gap_s = 0.0  # the longest stage time between two setpoints published [s]
         self.states: list[tuple[float, float]] = []  # (stamp [s], position [m]), appended whole by the spin thread
         self.watch_states: list[tuple[float, str]] = []
         self.watch_values: list[tuple[float, dict[str, str]]] = []
@@ -102,6 +103,8 @@ class Tracking:
             next_tick_s = STEP_S * math.ceil(self.client.now_s() / STEP_S)
             if next_tick_s != self.published_tick_s:
                 self.publisher.publish(Float64(data=float(self.setpoint(next_tick_s))))
+                if self.published_tick_s is not None:
+                    self.longest_gap_s = max(self.longest_gap_s, next_tick_s - self.published_tick_s)
                 self.published_tick_s = next_tick_s
             return predicate()
 
@@ -149,7 +152,8 @@ def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
 
             tracking.until(lambda: client.now_s() >= LOAD_STEP_S - 1.0, 120.0, "the load step", nodes.check_running)
             before = [state for stamp, state in tracking.watch_states if started_s + 1000.0 <= stamp < LOAD_STEP_S]
-            summary = tracking.watch_summary(started_s + 1000.0, LOAD_STEP_S)
+            summary = (f"{tracking.watch_summary(started_s + 1000.0, LOAD_STEP_S)}; the longest time between two "
+                       f"setpoints published {tracking.longest_gap_s:.1f} s")
             print(summary)
             assert before and set(before) == {"ok"}, f"nothing changed: the watch stays ok ({summary})"
             tracking.until(lambda: watch_state_at(LOAD_STEP_S) is not None and
@@ -173,7 +177,8 @@ def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
             error_after = tracking.tracking_rms_m(swapped_s, swapped_s + COMPARED_S)
             ratio = error_after / error_before
             print(f"tracking RMS {error_before:.3g} m before the step, {error_after:.3g} m after the swap "
-                  f"({ratio:.2f}x; its first 60 s {tracking.tracking_rms_m(swapped_s, swapped_s + 60.0):.3g} m)")
+                  f"({ratio:.2f}x; its first 60 s {tracking.tracking_rms_m(swapped_s, swapped_s + 60.0):.3g} m); "
+                  f"the longest time between two setpoints published {tracking.longest_gap_s:.1f} s")
             assert ratio <= TRACKING_RATIO, (error_before, error_after)
 
             in_force = client.get_parameters("compensator", ["model"])["model"]

@@ -82,6 +82,8 @@ REBUILD_PARAMETERS = (*MODEL_SOURCES, "inverse_method", "max_current")
 TUNINGS = ("imc", "manual")
 PERIOD_SMOOTHING = 0.1  # weight of a new interval in the running mean of the control period
 PERIOD_TOLERANCE = 0.2  # the imc gains are derived again when the period moved by more than this fraction
+PERIOD_LOG_INTERVAL_S = 60.0  # .. and logged at most once in this many wall s: at a simulated stage's 40-50x the
+# period swings from 0.1 to 0.45 s between ticks and was logged 1,500 times in a two-minute demo
 
 DIAGNOSTICS_PERIOD_S = 1.0
 
@@ -347,7 +349,8 @@ class CompensatorNode(Node):
         for name, value in imc_gains(self.model, self.tuned_period_s, self.core.lead_limit).items():
             setattr(self.core, name, value)
         self.get_logger().info(f"control period {self.tuned_period_s:.3g} s of stage time: "
-                               f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s (imc)")
+                               f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s (imc)",
+                               throttle_duration_sec=PERIOD_LOG_INTERVAL_S)
 
     def elapsed_s(self) -> float:
         """Stage seconds since the previous command computed, 0 for the first (simulated time with
@@ -411,6 +414,9 @@ class CompensatorNode(Node):
             "measurement_age_s": round(age_s, 3) if math.isfinite(age_s) else "never",
             "current_cmd_a": self.command_a,
             "integral_m": self.core.integral_m,
+            "kp": self.core.kp,
+            "ki_per_s": self.core.ki,
+            "control_period_s": round(self.period_estimate_s, 4),
             "targets_beyond_reach": self.clipped_count,
             "feedback": self.values["feedback"],
             "enabled": self.values["enabled"],
