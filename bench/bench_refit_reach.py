@@ -7,7 +7,7 @@ reach, and how does the loop track with it? Prints a table.
 A 5-operator GPI is identified (the package's pipeline, the `gpi` family) on the paper's decaying sine, 500 s at
 0.5 s steps, as the identification node's ~/excite and ~/refit make it in the node test. A fresh simulator then
 tracks a 100 s sine over 30 % of the excitation's output range with the compensator's PI loop at 0.5 s; its load
-steps by 8 N at 4200 s. The record from `start` s after the step, 600 s long, is refitted with each set of GPI
+steps by 8 N at 4200 s (the node test's step until it took 12 N). The record from `start` s after the step, 600 s long, is refitted with each set of GPI
 parameters of `--held` kept (by default the envelopes' slopes, refit_hysteresis's default, and none); each model's reach is its output after -5 A and
 +5 A held 300 s from the state the record leaves it in, beside the stage's own (the simulator copied at the
 record's end). Then each model is swapped in (started from the applied current, the PI gains derived again) and

@@ -27,7 +27,9 @@ STEP_S = 0.5  # simulated s per stage step, control period and setpoint
 EXCITE_S = 500.0
 LOAD_STEP_S = 4200.0  # the stage's load step [s of simulated time]: after the refit (it ended at 1618 s on a cold
 # numba cache beside a CPU-bound process; the watch calibrates for 1100 s after it)
-LOAD_STEP_N = 8.0  # the 2 N of the bench is flagged too (bench/bench_watch.py); here the test must not be marginal
+LOAD_STEP_N = 12.0  # clear of the GPI residual's wander through the nodes at 50x: at 8 N a window's mean moved by
+# only two to three times its scale and 2 of 34 runs were flagged after 120 s (130 s in a suite run, 156 s); the 2 N
+# of the issue is flagged in process (bench/bench_watch.py), where the position is not late
 PERIOD_S = 100.0  # the tracked sine's
 COMPARED_S = 300.0  # tracking error compared over this long before the step and after the swap
 TRACKING_RATIO = 1.5  # the tracking error after the swap at most this times the error before the step
