@@ -247,9 +247,9 @@ class RosClient:
         self.executor.add_node(self.node)
         self._clients: dict[tuple[object, str], Any] = {}
         self._stopped = Future()
-        _freeze_long_lived()
         self._thread = threading.Thread(target=self._spin, name="ros-client", daemon=True)
         self._thread.start()
+        _freeze_long_lived()
 
     def _spin(self) -> None:
         from sma_stage.nodes._common import spin_while
