@@ -140,7 +140,8 @@ class StageSession:
         self.commands: list[tuple[float, float]] = []
         self.profile: Callable[[float], float] | None = None
         self.profile_start_s = 0.0
-        self.published_s: list[float] = []  # when each setpoint of the profile was published [s simulated]
+        self.last_published_s: float | None = None  # when the profile's last setpoint was published [s simulated]
+        self.longest_gap_s = float("nan")  # the longest time between two of its setpoints published [s simulated]
         self.setpoint_pub = node.create_publisher(Float64, "setpoint", COMMAND_QOS)
         node.create_subscription(JointState, "joint_states", self.on_state,
                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
@@ -158,7 +159,10 @@ class StageSession:
         if profile is not None:
             now_s = self.now_s()
             self.setpoint_pub.publish(self._float(data=float(profile(now_s - start))))
-            self.published_s.append(now_s)
+            with self._lock:
+                if self.last_published_s is not None:
+                    self.longest_gap_s = float(np.fmax(self.longest_gap_s, now_s - self.last_published_s))
+                self.last_published_s = now_s
 
     def on_state(self, message: object) -> None:
         """Record the stage position [m] at its header stamp [s]."""
@@ -201,7 +205,7 @@ class StageSession:
         with self._lock:
             self.profile_start_s = start = self.now_s()
             self.profile = profile
-            self.published_s = []
+            self.last_published_s, self.longest_gap_s = None, float("nan")
         stop = start + simulated_s
         try:
             wait_for(lambda: self.now_s() >= stop, 3.0 * simulated_s / self.time_scale + 10.0, "the end of a run",
@@ -211,13 +215,6 @@ class StageSession:
                 self.profile = None
         wait_for(lambda: self.stamps[-1] >= stop, 10.0, "joint_states up to the end of the run", check)
         return start
-
-    def longest_setpoint_gap_s(self) -> float:
-        """The longest time between two setpoints of the last profile published [s simulated] (NaN with fewer
-        than two)."""
-        with self._lock:
-            published = np.array(self.published_s)
-        return float(np.max(np.diff(published))) if published.size > 1 else float("nan")
 
     def prime(self, setpoint_m: float, timeout_s: float, check: Callable[[], None]) -> None:
         """Publish one setpoint [m] and wait for a current command in answer (the compensator's first one
@@ -260,7 +257,7 @@ def tracking_run(session: StageSession, name: str, stroke: tuple[float, float], 
     steps = current_steps_pct(session.commands_between(start + lead_s, start + lead_s + settings.run_s))
     return TrackingRun(name, t - lead_s, setpoint, position, session.commands_at(stamps),
                        float(scale * np.sqrt(np.mean(error**2))), float(scale * np.max(np.abs(error))),
-                       *steps, pace, session.longest_setpoint_gap_s())
+                       *steps, pace, session.longest_gap_s)
 
 
 def current_steps_pct(commands: np.ndarray) -> tuple[float, float]:
