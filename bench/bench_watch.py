@@ -90,10 +90,10 @@ def record(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: in
 
 
 def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, test: DriftTest | None = None,
-        jitter_steps: int = 0) -> tuple[list[tuple[float, str]], float, float, float, float]:
+        jitter_steps: int = 0) -> tuple[list[tuple[float, str]], float, float, float, tuple[float, float]]:
     """((time [s], test) of each drift flag, restarting the tests after each; the tracking RMS [m]; the path test's
     mean coverage of the windows it looked at; the watch's mean cost per sample [us]; how far a window's mean
-    innovation wandered while calibrating, bias_held_out_m [m]), the watch started with the record."""
+    innovation wandered while calibrating, bias_held_out_m [m], and the widening of the bias test's scale), the watch started with the record."""
     rows = record(model, setpoint, effects, seconds, seed, jitter_steps)
     alarms, coverage, cost_us, bias_scale = watched(model, rows, test)
     tracking_rms = float(np.sqrt(np.mean(np.square(rows[:, 2] - rows[:, 3]))))
@@ -101,10 +101,10 @@ def run(model, setpoint: Setpoint, effects: Effects, seconds: float, seed: int, 
 
 
 def watched(model, rows: np.ndarray, test: DriftTest | None = None, start_s: float = 0.0
-            ) -> tuple[list[tuple[float, str]], float, float, float]:
+            ) -> tuple[list[tuple[float, str]], float, float, tuple[float, float]]:
     """The watch over a record's rows from start_s [s] on (started where the applied current before leaves the model,
     as the node starts it): ((time [s], test) of each drift flag, restarting the tests after each; the path test's
-    mean coverage; the cost per sample [us]; bias_held_out_m [m]). Fed CHUNK_STEPS samples at a time, as it would be
+    mean coverage; the cost per sample [us]; (bias_held_out_m [m], the bias scale's widening)). Fed CHUNK_STEPS samples at a time, as it would be
     while the stage runs (it only looks back)."""
     first = int(round(start_s / CONTROL_STEP_S))
     watch = ModelWatch(model, test, (rows[:first, 0], rows[:first, 1]))
@@ -122,7 +122,8 @@ def watched(model, rows: np.ndarray, test: DriftTest | None = None, start_s: flo
             alarms.append((float(chunk[-1, 0]), alarm_test(watch)))
             watch.restart_tests()  # the model runs on
     coverage = float(np.mean(coverages)) if coverages else float("nan")
-    bias_scale = watch.held_out_bias_m if watch.held_out_bias_m is not None else float("nan")
+    bias_scale = (watch.held_out_bias_m if watch.held_out_bias_m is not None else float("nan"),
+                  watch.bias_scale_widening)
     return alarms, coverage, 1e6 * watch_s / max(len(rows), 1), bias_scale
 
 
@@ -197,8 +198,8 @@ def main() -> int:
     print(f"model: {identified.models[1].name}, held-out RMS {model.metadata.get('held_out_rms', float('nan')):.3g} m, "
           f"stroke {stroke:.4g} m; watch settings {test}; PI loop at {CONTROL_STEP_S:g} s\n")
     print("| setpoint | seed | simulated h | false alarms | tracking RMS % of stroke | path test coverage | "
-          "watch cost per sample [us] | bias_held_out_m [um] |")
-    print("|---|---|---|---|---|---|---|---|")
+          "watch cost per sample [us] | bias_held_out_m [um] | bias scale widening |")
+    print("|---|---|---|---|---|---|---|---|---|")
     runs = [("sine", int(seed)) for seed in args.seeds.split(",")] + [("two cosines", 0), ("held random levels", 0)]
     alarms_total, hours_total = 0, 0.0
     for kind, seed in runs:
@@ -207,7 +208,7 @@ def main() -> int:
         alarms_total, hours_total = alarms_total + len(alarms), hours_total + args.hours
         listed = f" ({', '.join(f'{when:.0f} s {test}' for when, test in alarms[:3])})" if alarms else ""
         print(f"| {kind} | {seed} | {args.hours:g} | {len(alarms)}{listed} | {100 * rms / stroke:.3f} | "
-              f"{coverage:.2f} | {cost:.1f} | {1e6 * bias_scale:.3f} |")
+              f"{coverage:.2f} | {cost:.1f} | {1e6 * bias_scale[0]:.3f} | {bias_scale[1]:.2f} |")
     rate = f"{alarms_total / hours_total:.3g} per hour" if alarms_total else f"0 in {hours_total:g} h"
     print(f"\nfalse alarms: {rate}\n")
     starts_s = WATCH_START_STEP_S * np.arange(args.watch_starts)

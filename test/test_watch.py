@@ -10,6 +10,7 @@ from test_two_wire import example_model
 
 from sma_stage.errors import InputError
 from sma_stage.identify.watch import (
+    SCALE_CONFIDENCE,
     CusumOfWindows,
     DriftTest,
     ModelWatch,
@@ -17,6 +18,7 @@ from sma_stage.identify.watch import (
     _nearest_kept,
     in_a_row_factor,
     rms_without_outliers,
+    scale_confidence_factor,
 )
 
 
@@ -168,25 +170,26 @@ def with_pass_wander(t, position, wander_m: float, seed: int = 0, period_s: floa
 
 
 def size_trips(t, u, position) -> int:
-    """How often the size test trips over a record (the tests restarted after each flag)."""
+    """How often the size test trips over a record (its statistic restarted after each trip, the other tests'
+    left alone, so that their trips do not restart it)."""
     watch, trips = ModelWatch(example_model(), FAST), 0
     for start in range(0, t.size, 50):
         watch.step(t[start:start + 50], u[start:start + 50], position[start:start + 50])
-        if watch.state == "drift":
-            trips += watch.size_drift
-            watch.restart_tests()
+        if watch.size_drift:
+            trips += 1
+            watch.path_statistic = 0.0
     return trips
 
 
 def test_the_size_test_measures_how_far_passes_differ_and_still_flags_a_large_shift():
     """A residual that differs by 4 um from pass to pass, nothing changing: the calibration's held-out windows
     measure it, so the size test counts as change only what exceeds the largest of them (over two records of
-    6000 s it tripped 19 times without that level, 3 with it; the rest is the bias test's to weigh); a 20 um
+    6000 s it tripped 19 times without that level, 4 with it; the rest is the bias test's to weigh); a 20 um
     shift is still flagged by the path test within 120 s."""
     t, u, position = plant_record("periodic", seconds=6000.0)
     steady, _ = watch_record(t, u, position)
     assert 0.0 < steady.held_out_size_m < 1e-6, "passes that agree: a small level (the model's error is 10 um)"
-    assert sum(size_trips(t, u, with_pass_wander(t, position, 4e-6, seed)) for seed in (0, 1)) <= 3
+    assert sum(size_trips(t, u, with_pass_wander(t, position, 4e-6, seed)) for seed in (0, 1)) <= 6
     t, u, position = plant_record("periodic", 2e-5, 3000.0, seconds=4000.0)
     watch, flags = watch_record(t, u, with_pass_wander(t, position, 4e-6))
     assert watch.held_out_size_m > 1.5e-6, "passes 4 um apart: a scale near it"
@@ -207,6 +210,26 @@ def test_the_bias_scale_widens_by_how_windows_in_a_row_share_their_mean():
     assert in_a_row_factor(np.arange(windows), persistent, 3) == pytest.approx(math.sqrt(1 + (4 * 0.8 + 2 * 0.64) / 3),
                                                                                abs=0.1)
     assert in_a_row_factor(2 * np.arange(windows), persistent, 3) == 1.0
+
+
+def test_the_bias_scale_is_widened_to_an_upper_bound_of_what_few_windows_measure():
+    """The RMS of 40 windows' means falls under the true scale in about half of the calibrations; widened by
+    scale_confidence_factor, in about 1 - SCALE_CONFIDENCE of them (the lag-one correlation estimated from the
+    windows too), whether the windows are independent or share their mean as an AR(1) of 0.8."""
+    rng, windows, draws = np.random.default_rng(1), 40, 400
+    for rho in (0.0, 0.8):
+        measured_low = widened_low = 0
+        for _ in range(draws):
+            means = np.zeros(windows + 100)
+            for k in range(1, means.size):
+                means[k] = rho * means[k - 1] + rng.standard_normal()
+            means, true_scale = means[100:], 1.0 / math.sqrt(1.0 - rho**2)
+            measured = math.sqrt(np.mean(np.square(means)))
+            measured_low += measured < true_scale
+            widened_low += measured * scale_confidence_factor(np.arange(windows), means) < true_scale
+        assert 0.4 < measured_low / draws < 0.65, rho
+        assert widened_low / draws < 2.0 * (1.0 - SCALE_CONFIDENCE), rho
+    assert scale_confidence_factor(np.arange(400), rng.standard_normal(400)) < 1.1, "many windows: hardly widened"
 
 
 def test_a_path_never_retraced_is_not_judged_and_gives_no_alarm():

@@ -85,7 +85,8 @@ class Tracking:
 
         return (f"watch from {start_s:.0f} to {stop_s:.0f} s: largest statistics path {largest('drift_statistic')}, "
                 f"bias {largest('bias_statistic')}, level {largest('level_statistic')}; bias_held_out_m "
-                f"{last('bias_held_out_m')}, size_held_out_m {last('size_held_out_m')}")
+                f"{last('bias_held_out_m')} (widened x{last('bias_scale_widening')}), size_held_out_m "
+                f"{last('size_held_out_m')}")
 
     def statistic_steps(self, key: str, start_s: float, stop_s: float) -> str:
         """Each new value of a drift statistic on /diagnostics between two times, as 's after start_s: value'."""

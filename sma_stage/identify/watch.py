@@ -23,7 +23,8 @@ started where the watch started it, settles onto the stage's state):
   b = |mean innovation| / sigma, sigma the largest of: what the passes' variance and the noise give a window's
   mean; the RMS of the calibration windows' mean innovations, each remembered sample compared with its nearest
   of the other passes only (how far a window's mean wanders with nothing changed, measured), widened by how
-  windows in a row share it (in_a_row_factor); BIAS_FLOOR r0. Then
+  windows in a row share it (in_a_row_factor) and widened to an upper confidence bound of that measurement
+  (scale_confidence_factor: a few correlated windows can measure it low); BIAS_FLOOR r0. Then
   S_b = max(0, S_b + b - bias_allowance) (capped as the size's); drift while S_b > bias_threshold. It sees a
   change small against the model's error but steady (an ambient drift of a fraction of a kelvin) that the size,
   which counts anything under shift_allowance r0 as no change, does not.
@@ -44,6 +45,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.special import gammaincinv
 
 from sma_stage.errors import InputError
 
@@ -60,6 +62,7 @@ WINDOWS_TO_TRIP = 3  # judged windows the path test needs at least to trip (one 
 EXPLAINED = 2.0  # innovations up to this many times what the passes' differences and the noise give ...
 BIAS_FLOOR = 0.005  # the bias test's scale of a window's mean innovation is at least this fraction of r0
 MIN_HELD_OUT_WINDOWS = 5  # calibration windows compared with their other passes that measure the bias test's scale
+SCALE_CONFIDENCE = 0.95  # the bias test's scale, measured on few windows, is widened to this upper confidence bound
 HELD_OUT_OUTLIER = 6.0  # a calibration window whose mean is this many robust standard deviations out is left out
 MAD_TO_SIGMA = 1.0 / 0.6745  # a normal variable's standard deviation over its median absolute deviation
 JUDGE_RATE_HZ = 10.0  # the path test judges at most this many samples per second of stage time
@@ -301,16 +304,34 @@ def rms_without_outliers(values: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(kept)))) if kept.size >= MIN_HELD_OUT_WINDOWS else 0.0
 
 
-def in_a_row_factor(slots: np.ndarray, values: np.ndarray, count: int) -> float:
-    """How much wider the mean of `count` consecutive windows spreads than `count` independent windows' would, for
-    values (each window's, slots their indices) correlated as an AR(1) with their lag-one correlation (taken about
-    0, at least 0): sqrt(1 + 2/count sum_k (count - k) rho^k)."""
+def lag_one_correlation(slots: np.ndarray, values: np.ndarray) -> float:
+    """The lag-one correlation of values (each window's, slots their indices) over adjacent windows, taken about 0
+    and at least 0; 0 with fewer than MIN_HELD_OUT_WINDOWS adjacent pairs."""
     pairs = np.flatnonzero(np.diff(slots) == 1)
     if pairs.size < MIN_HELD_OUT_WINDOWS:
-        return 1.0
+        return 0.0
     first, second = values[pairs], values[pairs + 1]
-    rho = max(0.0, float(np.sum(first * second) / max(math.sqrt(np.sum(first**2) * np.sum(second**2)), 1e-300)))
+    return max(0.0, float(np.sum(first * second) / max(math.sqrt(np.sum(first**2) * np.sum(second**2)), 1e-300)))
+
+
+def in_a_row_factor(slots: np.ndarray, values: np.ndarray, count: int) -> float:
+    """How much wider the mean of `count` consecutive windows spreads than `count` independent windows' would, for
+    values (each window's, slots their indices) correlated as an AR(1) with their lag-one correlation:
+    sqrt(1 + 2/count sum_k (count - k) rho^k)."""
+    rho = lag_one_correlation(slots, values)
     return math.sqrt(1.0 + 2.0 / count * sum((count - lag) * rho**lag for lag in range(1, count)))
+
+
+def scale_confidence_factor(slots: np.ndarray, values: np.ndarray) -> float:
+    """How much to widen the RMS of values (each window's, slots their indices) so that it is at least the true
+    scale with SCALE_CONFIDENCE: sqrt(n / q), q the chi-square quantile 1 - SCALE_CONFIDENCE on n degrees of
+    freedom, n = windows (1 - rho^2) / (1 + rho^2) for their lag-one correlation rho (an AR(1)'s mean square
+    varies as that many independent squares' would), at least 1; 1 with fewer than MIN_HELD_OUT_WINDOWS values."""
+    if values.size < MIN_HELD_OUT_WINDOWS:
+        return 1.0
+    rho = lag_one_correlation(slots, values)
+    degrees = max(1.0, values.size * (1.0 - rho**2) / (1.0 + rho**2))
+    return math.sqrt(degrees / (2.0 * float(gammaincinv(0.5 * degrees, 1.0 - SCALE_CONFIDENCE))))
 
 
 def load_kernels(model: object) -> None:
@@ -403,6 +424,7 @@ class ModelWatch:
         self.last_bias_z: float | None = None  # the last judged window's |mean innovation| in its standard errors
         self.held_out_bias_m: float | None = None  # a window's mean innovation with nothing changed, RMS [m]
         self.held_out_size_m: float | None = None  # a window's innovations' RMS with nothing changed, largest [m]
+        self.bias_scale_widening = 1.0  # the bias test's scale over held_out_bias_m: the measurement's uncertainty
         self.samples = 0
 
     def step(self, t_s: np.ndarray, current_a: np.ndarray, position_m: np.ndarray) -> np.ndarray:
@@ -516,7 +538,8 @@ class ModelWatch:
         """(the bias test's scale, the size test's level) [m], from the calibration's windows, each sample compared
         with its nearest of the other passes (0 where fewer than MIN_HELD_OUT_WINDOWS could be): how far a window's
         mean wanders with nothing changed (the means' RMS, widened by in_a_row_factor over WINDOWS_TO_TRIP: where
-        each pass's residual differs, windows in a row share it and trip the test together), and how large its
+        each pass's residual differs, windows in a row share it and trip the test together; and by
+        scale_confidence_factor, since few windows can measure it low), and how large its
         innovations are (the largest window RMS). Only inliers count: one window from a pass remembered while the
         stage still settled would set either alone."""
         if self.held_out_size_m is None:  # both are set together, once
@@ -526,9 +549,10 @@ class ModelWatch:
             kept = inliers(means)
             self.held_out_bias_m = rms_without_outliers(means) * in_a_row_factor(slots[kept], means[kept],
                                                                                  WINDOWS_TO_TRIP)
+            self.bias_scale_widening = scale_confidence_factor(slots[kept], means[kept])
             kept_sizes = sizes[inliers(sizes)]
             self.held_out_size_m = float(kept_sizes.max()) if kept_sizes.size >= MIN_HELD_OUT_WINDOWS else 0.0
-        return self.held_out_bias_m, self.held_out_size_m
+        return self.held_out_bias_m * self.bias_scale_widening, self.held_out_size_m
 
     @property
     def path_drift(self) -> bool:

@@ -168,6 +168,7 @@ class WatchChannel:
                 "bias_statistic": round(watch.bias_statistic, 4),
                 "bias_threshold": self.test.bias_threshold,
                 "bias_held_out_m": watch.held_out_bias_m if watch.held_out_bias_m is not None else "calibrating",
+                "bias_scale_widening": round(watch.bias_scale_widening, 3),
                 "size_held_out_m": watch.held_out_size_m if watch.held_out_size_m is not None else "calibrating",
                 "path_coverage": round(watch.coverage, 3) if watch.coverage is not None else "none",
                 "level_statistic": round(watch.cusum.statistic, 4),
