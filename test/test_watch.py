@@ -17,6 +17,7 @@ from sma_stage.identify.watch import (
     RecentRecord,
     _nearest_kept,
     in_a_row_factor,
+    lag_one_correlation,
     rms_without_outliers,
     scale_confidence_factor,
 )
@@ -203,13 +204,14 @@ def test_the_bias_scale_widens_by_how_windows_in_a_row_share_their_mean():
     so the scale widens by what three in a row spread more (1.58); windows not adjacent say nothing of it."""
     rng, windows = np.random.default_rng(0), 120
     independent = rng.standard_normal(windows)
-    assert 1.0 <= in_a_row_factor(np.arange(windows), independent, 3) < 1.1
+    slots = np.arange(windows)
+    assert 1.0 <= in_a_row_factor(lag_one_correlation(slots, independent), 3) < 1.1
     persistent = np.zeros(windows)
     for k in range(1, windows):
         persistent[k] = 0.8 * persistent[k - 1] + rng.standard_normal()
-    assert in_a_row_factor(np.arange(windows), persistent, 3) == pytest.approx(math.sqrt(1 + (4 * 0.8 + 2 * 0.64) / 3),
-                                                                               abs=0.1)
-    assert in_a_row_factor(2 * np.arange(windows), persistent, 3) == 1.0
+    assert in_a_row_factor(lag_one_correlation(slots, persistent), 3) == pytest.approx(
+        math.sqrt(1 + (4 * 0.8 + 2 * 0.64) / 3), abs=0.1)
+    assert in_a_row_factor(lag_one_correlation(2 * np.arange(windows), persistent), 3) == 1.0
 
 
 def test_the_bias_scale_is_widened_to_an_upper_bound_of_what_few_windows_measure():
@@ -226,10 +228,12 @@ def test_the_bias_scale_is_widened_to_an_upper_bound_of_what_few_windows_measure
             means, true_scale = means[100:], 1.0 / math.sqrt(1.0 - rho**2)
             measured = math.sqrt(np.mean(np.square(means)))
             measured_low += measured < true_scale
-            widened_low += measured * scale_confidence_factor(np.arange(windows), means) < true_scale
+            estimated = lag_one_correlation(np.arange(windows), means)
+            widened_low += measured * scale_confidence_factor(estimated, windows) < true_scale
         assert 0.4 < measured_low / draws < 0.65, rho
         assert widened_low / draws < 2.0 * (1.0 - SCALE_CONFIDENCE), rho
-    assert scale_confidence_factor(np.arange(400), rng.standard_normal(400)) < 1.1, "many windows: hardly widened"
+    many = rng.standard_normal(400)
+    assert scale_confidence_factor(lag_one_correlation(np.arange(400), many), 400) < 1.1, "many windows: hardly widened"
 
 
 def test_a_path_never_retraced_is_not_judged_and_gives_no_alarm():

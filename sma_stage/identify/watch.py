@@ -314,23 +314,20 @@ def lag_one_correlation(slots: np.ndarray, values: np.ndarray) -> float:
     return max(0.0, float(np.sum(first * second) / max(math.sqrt(np.sum(first**2) * np.sum(second**2)), 1e-300)))
 
 
-def in_a_row_factor(slots: np.ndarray, values: np.ndarray, count: int) -> float:
+def in_a_row_factor(rho: float, count: int) -> float:
     """How much wider the mean of `count` consecutive windows spreads than `count` independent windows' would, for
-    values (each window's, slots their indices) correlated as an AR(1) with their lag-one correlation:
-    sqrt(1 + 2/count sum_k (count - k) rho^k)."""
-    rho = lag_one_correlation(slots, values)
+    window values correlated as an AR(1) with lag-one correlation rho: sqrt(1 + 2/count sum_k (count - k) rho^k)."""
     return math.sqrt(1.0 + 2.0 / count * sum((count - lag) * rho**lag for lag in range(1, count)))
 
 
-def scale_confidence_factor(slots: np.ndarray, values: np.ndarray) -> float:
-    """How much to widen the RMS of values (each window's, slots their indices) so that it is at least the true
-    scale with SCALE_CONFIDENCE: sqrt(n / q), q the chi-square quantile 1 - SCALE_CONFIDENCE on n degrees of
-    freedom, n = windows (1 - rho^2) / (1 + rho^2) for their lag-one correlation rho (an AR(1)'s mean square
-    varies as that many independent squares' would), at least 1; 1 with fewer than MIN_HELD_OUT_WINDOWS values."""
-    if values.size < MIN_HELD_OUT_WINDOWS:
+def scale_confidence_factor(rho: float, windows: int) -> float:
+    """How much to widen the RMS of `windows` window values so that it is at least the true scale with
+    SCALE_CONFIDENCE: sqrt(n / q), q the chi-square quantile 1 - SCALE_CONFIDENCE on n degrees of freedom,
+    n = windows (1 - rho^2) / (1 + rho^2) for their lag-one correlation rho (an AR(1)'s mean square varies as that
+    many independent squares' would), at least 1; 1 with fewer than MIN_HELD_OUT_WINDOWS windows."""
+    if windows < MIN_HELD_OUT_WINDOWS:
         return 1.0
-    rho = lag_one_correlation(slots, values)
-    degrees = max(1.0, values.size * (1.0 - rho**2) / (1.0 + rho**2))
+    degrees = max(1.0, windows * (1.0 - rho**2) / (1.0 + rho**2))
     return math.sqrt(degrees / (2.0 * float(gammaincinv(0.5 * degrees, 1.0 - SCALE_CONFIDENCE))))
 
 
@@ -547,9 +544,9 @@ class ModelWatch:
                                                                PASS_GAP_S, PASS_AGREEMENT * reference,
                                                                self.test.min_coverage)
             kept = inliers(means)
-            self.held_out_bias_m = rms_without_outliers(means) * in_a_row_factor(slots[kept], means[kept],
-                                                                                 WINDOWS_TO_TRIP)
-            self.bias_scale_widening = scale_confidence_factor(slots[kept], means[kept])
+            rho = lag_one_correlation(slots[kept], means[kept])
+            self.held_out_bias_m = rms_without_outliers(means) * in_a_row_factor(rho, WINDOWS_TO_TRIP)
+            self.bias_scale_widening = scale_confidence_factor(rho, int(np.count_nonzero(kept)))
             kept_sizes = sizes[inliers(sizes)]
             self.held_out_size_m = float(kept_sizes.max()) if kept_sizes.size >= MIN_HELD_OUT_WINDOWS else 0.0
         return self.held_out_bias_m * self.bias_scale_widening, self.held_out_size_m
