@@ -82,6 +82,8 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
         raise InputError("give validation data or a holdout fraction, not both")
     families = check_families(families)
     with Workers(workers) as pool:
+        if diagnose_rounds > 0 or families != ("gpi",):
+            pool.start()  # the processes load their kernels while this one fits the GPI
         return _identify(record, validation, holdout_fraction, operators, diagnose_rounds, output_unit, progress,
                          source, families, max_fit_samples, pool)
 

@@ -18,6 +18,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from sma_stage.errors import InputError
+from sma_stage.identify._two_wire_sensitivity import rest_with_sensitivities, run_with_sensitivities
 from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.diagnosis import COUNT_FIT_MARGIN, Workers
 from sma_stage.identify.fit import check_data, information_criterion
@@ -240,8 +241,18 @@ class _Problem:
         check_cancelled()
         return (TwoWireModel(self.parameters(free)).predict(self.t, self.u) - self.y) / self.span
 
+    def jacobian(self, free: np.ndarray) -> np.ndarray:
+        """d residuals / d free, from the model's sensitivities (run_with_sensitivities) from rest."""
+        check_cancelled()
+        p = self.parameters(free).as_array()
+        state, dstate = rest_with_sensitivities(p, self.n, self.m)
+        out, dout = np.empty(self.t.size), np.empty((self.t.size, p.size))
+        run_with_sensitivities(self.t, self.u, p, self.n, self.m, state, dstate, out, dout)
+        fitted = np.delete(dout, SCALARS.index("heating_reference_a"), axis=1)
+        return fitted @ self.tie / self.span
+
     def solve(self, start: np.ndarray, evaluations: int, tolerance: float = 1e-8) -> object:
         """scipy's least_squares from start, stopped after `evaluations` or when the cost and the step change by
         less than `tolerance` (relative)."""
-        return least_squares(self.residuals, start, bounds=(self.low, self.high), x_scale="jac",
+        return least_squares(self.residuals, start, jac=self.jacobian, bounds=(self.low, self.high), x_scale="jac",
                              max_nfev=evaluations, ftol=tolerance, xtol=tolerance)
