@@ -122,7 +122,8 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
     model = gpi_model
     chosen = None
     if errors is not None and compared:
-        chosen = _compare_families(families, fit, found, errors, ident, valid, scored_from, held, report, progress)
+        chosen = _compare_families(families, fit, found, errors, ident, valid, scored_from, held, report, progress,
+                                   pool)
         if chosen is not None:
             carried = chosen.start_state(continued.t, continued.input, start) if isinstance(chosen, IdentifiedModel) \
                 else None
@@ -256,29 +257,36 @@ def deployed_held_out(report: dict) -> dict | None:
 
 def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics,
                       ident: Series, valid: Series, scored_from: int, held: dict[str, Pending], report: dict,
-                      progress: Progress) -> AnyModel | None:
-    """Fit the free-weight GPI, take the held-current families' fits (begun with `held`) and fill
-    report["families"]; the chosen family's model (without state) when it is not the GPI, else None."""
+                      progress: Progress, pool: Workers) -> AnyModel | None:
+    """Fit the free-weight GPI (in the pool's processes, while the held-current families' fits, begun with `held`,
+    are finished) and fill report["families"]; the chosen family's model (without state) when it is not the GPI,
+    else None."""
     gpi = _gpi_row(fit, found, errors, ident)
     rows, models = [], []
     if "gpi" in families:
         rows.append(gpi)
         models.append(None)
+    free_weights = None
     if "gpi_free" in families:
         starts = found.starts if found is not None else {}
         ident_start = starts["identification"].start if "identification" in starts else Start("rest")
         valid_start = starts["validation"].start if "validation" in starts else Start("rest")
         gpi_model = found.chain.model if found is not None else IdentifiedModel(fit.parameters, fit.operators)
-        row, free = fit_free_weights_row(gpi_model, gpi.parameters, ident, ident_start, valid, scored_from,
-                                         valid_start)
-        rows.append(row)
-        models.append(free)
+        free_weights = pool.submit(fit_free_weights_row, gpi_model, gpi.parameters, ident, ident_start, valid,
+                                   scored_from, valid_start)
+    held_rows = []
     for family, fitting in held.items():
         if progress is not None:
             progress(f"the {family.replace('_', '-')} model's fit")
         row, found_family = held_current_row(family, fitting, valid, scored_from)
+        held_rows.append((row, found_family.model.without_state() if found_family is not None else None))
+    if free_weights is not None:
+        row, free = free_weights.result()
         rows.append(row)
-        models.append(found_family.model.without_state() if found_family is not None else None)
+        models.append(free)
+    for row, model in held_rows:
+        rows.append(row)
+        models.append(model)
     chosen = choose(rows)
     if chosen is not None:
         rows[chosen] = replace(rows[chosen], chosen=True)
