@@ -37,7 +37,7 @@ def documented(node: str) -> dict[str, tuple[str, str, bool]]:
     found = {}
     for names_cell, default_cell, range_cell, meaning in readme_rows(node):
         names = re.findall(r"`([^`]+)`", names_cell)
-        defaults = default_cell.split(", ")
+        defaults = re.split(r", (?![^\[]*\])", default_cell)  # not the commas inside a list
         ranges = [range_cell] * len(names) if "," not in range_cell else range_cell.split(", ")
         assert len(defaults) == len(names) == len(ranges), names_cell
         for name, default, allowed in zip(names, defaults, ranges, strict=True):

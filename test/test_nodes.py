@@ -36,6 +36,7 @@ from sma_stage.errors import InputError  # noqa: E402
 from sma_stage.identify.effects import EFFECT_NAMES  # noqa: E402
 from sma_stage.io import read_bag, read_csv  # noqa: E402
 from sma_stage.model import Effect, GPIInverseStream, GPIParameters, IdentifiedModel, load_model_file  # noqa: E402
+from sma_stage.model.identified import load_any_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.compensator_node import CompensatorNode  # noqa: E402
 from sma_stage.nodes.identification_node import IdentificationNode  # noqa: E402
@@ -892,7 +893,7 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     assert report["validation"]["samples"] == report["samples"]["validation"] > 10
     assert report["identification"]["rms_pct"] < 25.0
     assert report["compensator"]["pushed"], report["compensator"]["message"]
-    deployed = load_model_file(model_file)
+    deployed = load_any_model_file(model_file)  # the chosen family's model (every family by default)
     assert compensator.model == deployed and deployed.without_state().to_dict() == report["identified_model"]
     recorded = identification.snapshot()
     assert len(recorded) == report["samples"]["identification"] + report["samples"]["validation"], "buffer frozen"
@@ -907,7 +908,6 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
 def test_identification_refit_deploys_the_chosen_family_and_the_compensator_runs_it(ros, tmp_path):
     """With families gpi and two_wire the model of the family the report marks chosen is written and pushed; with
     two_wire alone a two-wire model goes to the compensator, which runs it; an unknown family is refused."""
-    from sma_stage.model.identified import load_any_model_file
     from sma_stage.model.two_wire import TwoWireModel
 
     model_file = tmp_path / "fitted.yaml"
@@ -1090,11 +1090,11 @@ def test_identification_refit_survives_a_candidate_that_cannot_be_fitted(ros, tm
     candidates = {entry["effect"] for entry in report["diagnosis"]["candidates"]}
     assert candidates == set(EFFECT_NAMES), "every candidate reported, fitted or not"
     assert report["compensator"]["pushed"], report["compensator"]["message"]
-    assert load_model_file(model_file) == compensator.model
+    assert load_any_model_file(model_file) == compensator.model
     out = tmp_path / "cli"
     assert cli_main(["diagnose", str(DRIFT_UNFITTABLE), "--holdout", "0.25", "--operators", "5", "--rounds", "1",
                      "--out", str(out), "--json"]) == 0
-    assert load_model_file(out / "model.yaml") == load_model_file(model_file), "gpi_tool and ~/refit: one model"
+    assert load_any_model_file(out / "model.yaml") == load_any_model_file(model_file), "gpi_tool and ~/refit: one model"
 
 
 def test_identification_refuses_a_refit_that_misses_its_held_out_tail(ros, tmp_path, monkeypatch):

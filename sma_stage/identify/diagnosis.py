@@ -25,6 +25,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -425,20 +426,26 @@ class Workers:
         self._starting: threading.Thread | None = None
         self._failure = "unknown reason"
 
-    def run(self, function: Callable[..., object], jobs: list[tuple], progress: Progress, doing: str) -> list[object]:
+    def run(self, function: Callable[..., object], jobs: list[tuple], progress: Progress, doing: str,
+            then: Callable[[], object] | None = None) -> list[object]:
         """[function(*job) for job in jobs], in order; progress is told what starts (`doing` with the job's
         name in its {}), and in this process what each job reports. Processes take the jobs of costlier
-        effects first (Candidate.relative_cost), so that the round's longest fit does not start last."""
+        effects first (Candidate.relative_cost), so that the round's longest fit does not start last.
+        then: called once the jobs are handed out, before they are waited for (to submit work behind them)."""
         if self.workers == 1 or len(jobs) < 2:
             results = []
             for job in jobs:
                 _report(progress, doing.format(_job_name(job)))
                 results.append(_as_in_a_worker(function, *job, progress))
+            if then is not None:
+                then()
             return results
         executor = self._started()
         _report(progress, doing.format(", ".join(_job_name(job) for job in jobs)) + f" in {self.workers} processes")
         costliest_first = sorted(range(len(jobs)), key=lambda index: -_job_cost(jobs[index]))
         futures = {index: executor.submit(function, *jobs[index]) for index in costliest_first}
+        if then is not None:
+            then()
         return [self._answered(futures[index]) for index in range(len(jobs))]
 
     def submit(self, function: Callable[..., object], *args: object) -> Pending:
@@ -591,8 +598,9 @@ def _job_cost(job: tuple) -> float:
 
 
 def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics, tests: ResidualTests,
-                  recount: bool, progress: Progress, pool: Workers) -> Round:
-    """Fit every effect not yet in the chain on top of it and pick the winner (see the selection rule)."""
+                  recount: bool, progress: Progress, pool: Workers, then: Callable[[], object] | None = None) -> Round:
+    """Fit every effect not yet in the chain on top of it and pick the winner (see the selection rule); `then` is
+    called once the candidates are handed to the pool (Workers.run)."""
     first = len(chain.stages) == 1
     margin = VALIDATION_MARGIN if first else LATER_VALIDATION_MARGIN
     t_i, u_i, y_i = ident
@@ -608,7 +616,7 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
     jobs = [(name, chain, ident, valid, before, margin, v_i, w_i, base, starts) for name in names]
     candidates, failures = [], {}
     doing = "fitting candidate {}" + ("" if first else f" on top of {' + '.join(chain.effects)}")
-    for name, outcome in zip(names, pool.run(_judged, jobs, progress, doing), strict=True):
+    for name, outcome in zip(names, pool.run(_judged, jobs, progress, doing, then), strict=True):
         if isinstance(outcome, NotFitted):
             failures[name] = str(outcome)
             _report(progress, f"{name}: not fitted: {outcome}")
@@ -673,7 +681,8 @@ def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chai
 
 
 def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: Progress = None,
-                      cold: bool = True, pool: Workers | None = None) -> tuple[Chain, dict[str, object]]:
+                      cold: bool = True, pool: Workers | None = None, begun: ColdFit | None = None
+                      ) -> tuple[Chain, dict[str, object]]:
     """The operator count of the model chosen by the identification BIC and the held-out error together:
     the GPI refitted at every count of OPERATOR_CANDIDATES with the effects held (from the model's GPI and,
     when cold, from a cold fit of every count, the better kept; on a copy thinned to SCREEN_SAMPLES, the chosen count
@@ -682,14 +691,18 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     of them generalises. The BIC admits the counts whose RMS error there is within COUNT_FIT_MARGIN of
     the best (a BIC within 2 N ln(1 + COUNT_FIT_MARGIN): a fit that failed is not chosen for luck on the
     validation record), and of those the lowest validation RMS wins, the smaller count on a near-tie
-    (COUNT_TIE). The counts are fitted in the pool's processes when one is given. Returns the
+    (COUNT_TIE). The counts are fitted in the pool's processes when one is given; `begun`, a cold fit begun
+    earlier (begin_cold_fit), is taken when it was begun on the same data. Returns the
     chain with that count and the report's "operators" block (the choice, the runner-up, every count's
     BIC and validation RMS)."""
     t_i, u_i, y_i = ident
     v_i, w_i = chain.data(t_i, u_i, y_i)
     last, unit = chain.last, chain.last.gpi_parameters.output_unit
     keep = thinned(v_i, SCREEN_SAMPLES)
-    cold_fit = attempt("GPI", lambda: fit_gpi(v_i[keep], w_i[keep], output_unit=unit)) if cold else None
+    cold_fit = None
+    if cold:
+        begun = begun if begun is not None and begun.fits(v_i, w_i) else begin_cold_fit(v_i, w_i, unit, Workers())
+        cold_fit = begun.pending.result()
     cold_fits = cold_fit.by_count if isinstance(cold_fit, FitResult) else {}
     jobs = [(count, chain, (v_i, w_i, y_i), valid, cold_fits.get(count)) for count in OPERATOR_CANDIDATES
             if count != last.operators]
@@ -717,6 +730,30 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     _report(progress, f"operators: {chosen} chosen (runner-up {runner_up}) by BIC and held-out error")
     return found_chain, {"chosen": chosen, "runner_up": runner_up,
                          "by_count": {str(count): rows[count] for count in sorted(rows)}}
+
+
+@dataclass(frozen=True)
+class ColdFit:
+    """A cold fit of every operator count (count_by_held_out's) under way on what a chain leaves of the
+    identification record (v, w)."""
+
+    v: np.ndarray
+    w: np.ndarray
+    pending: Pending
+
+    def fits(self, v: np.ndarray, w: np.ndarray) -> bool:
+        """Whether it was begun on these data."""
+        return np.array_equal(self.v, v) and np.array_equal(self.w, w)
+
+
+def begin_cold_fit(v: np.ndarray, w: np.ndarray, unit: str, pool: Workers) -> ColdFit:
+    """count_by_held_out's cold fit of (v, w) begun in the pool's processes (with workers 1: when asked for)."""
+    keep = thinned(v, SCREEN_SAMPLES)
+    return ColdFit(v, w, pool.submit(_cold_fit, v[keep], w[keep], unit))
+
+
+def _cold_fit(v: np.ndarray, w: np.ndarray, unit: str) -> FitResult | NotFitted:
+    return attempt("GPI", lambda: fit_gpi(v, w, output_unit=unit))
 
 
 def _count_option(count: int, chain: Chain, data: tuple[np.ndarray, np.ndarray, np.ndarray], valid: Validation,
@@ -796,13 +833,13 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
     failed = [name for name, check in tests_before.checks.items() if not check.passed]
     _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
-    chain, rounds = _search_rounds(chain, ident_record, validation, before, tests_before, operators is None,
-                                   max_rounds, progress, pool)
+    chain, rounds, begun = _search_rounds(chain, ident_record, validation, before, tests_before, operators is None,
+                                          max_rounds, progress, pool)
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
     counts: dict[str, object] = {}
     if operators is None and chain.last.composable:
-        chain, counts = count_by_held_out(chain, ident_record, validation, progress, pool=pool)
+        chain, counts = count_by_held_out(chain, ident_record, validation, progress, pool=pool, begun=begun)
     changed = bool(chain.effects) or chain.last.operators != base.operators
     start_after = validation.predict(chain.model, chain.start) if changed else start_before
     predicted_after = start_after.predicted
@@ -833,15 +870,24 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
 
 def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: ErrorMetrics,
                    tests_before: ResidualTests, recount: bool, max_rounds: int, progress: Progress,
-                   pool: Workers) -> tuple[Chain, list[Round]]:
+                   pool: Workers) -> tuple[Chain, list[Round], ColdFit | None]:
     """Round after round (_search_round), each on top of the model the one before left, until one adds
     nothing or max_rounds; with recount, the operator count is chosen again after each round that adds an
-    effect (count_by_held_out). Returns the model found and every round."""
+    effect (count_by_held_out). Returns the model found, every round, and (with recount) the final count's cold
+    fit of the model the last round began from, begun in the pool behind that round's candidates (in the time
+    the round's longest fit leaves the other processes): what the final count needs when the round adds
+    nothing."""
     rounds: list[Round] = []
     current = before
+    begun: list[ColdFit] = []
+
+    def begin(chain: Chain) -> None:
+        begun[:] = [begin_cold_fit(*chain.data(*ident), chain.last.gpi_parameters.output_unit, pool)]
+
     while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
         tests = validation.tests(validation.predict(chain.model, chain.start).predicted) if rounds else tests_before
-        found = _search_round(chain, ident, validation, current, tests, recount and not rounds, progress, pool)
+        then = partial(begin, chain) if recount and rounds else None
+        found = _search_round(chain, ident, validation, current, tests, recount and not rounds, progress, pool, then)
         rounds.append(found)
         if found.winner is None:
             break
@@ -850,7 +896,7 @@ def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: 
         if recount and chain.composable:
             chain, _ = count_by_held_out(chain, ident, validation, progress, cold=False, pool=pool)
             current = validation.errors(validation.predict(chain.model, chain.start).predicted)
-    return chain, rounds
+    return chain, rounds, begun[0] if begun else None
 
 
 def _report(progress: Progress, message: str) -> None:
