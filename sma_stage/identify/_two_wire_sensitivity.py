@@ -28,6 +28,25 @@ REST_STEP = 1e-6  # the central differences of the rest state, relative to each 
 
 
 @numba.njit(cache=True, nogil=True)
+def _add_operator_fraction(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: int, wire: int, j: int,
+                           dfraction: np.ndarray) -> float:
+    """The wire's operator j's share of its transformed fraction, weight sigma((z - centre) / width); its
+    derivative is added into dfraction."""
+    index, weight_index = 2 + wire * n + j, FIRST_WEIGHT + wire * n + j
+    weight, width = p[weight_index], p[7 + wire]
+    argument = (state[index] - p[5 + wire]) / width
+    tanh = math.tanh(argument)
+    sigma = 0.5 * (1.0 + tanh)
+    slope = weight * 0.5 * (1.0 - tanh * tanh) / width
+    for c in range(p.size):
+        dfraction[c] += slope * dstate[index, c]
+    dfraction[5 + wire] -= slope
+    dfraction[7 + wire] -= slope * argument
+    dfraction[weight_index] += sigma
+    return weight * sigma
+
+
+@numba.njit(cache=True, nogil=True)
 def _tangent_substep(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: int, m: int, current: float,
                      step_s: float, shares: np.ndarray, dshares: np.ndarray, work: np.ndarray) -> float:
     """The model's _substep with every state's derivative (dstate, one row per state) carried beside it; shares
@@ -66,7 +85,7 @@ def _tangent_substep(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: in
         for c in range(count):
             dseen[c] = dstate[wire, c] - sign * p[3 + wire] * dy_before[c]
         dseen[3 + wire] -= sign * y_before
-        centre, width, hysteresis = p[5 + wire], p[7 + wire], p[9 + wire]
+        hysteresis = p[9 + wire]
         fraction, total = 0.0, 0.0
         dfraction[:] = 0.0
         dtotal[:] = 0.0
@@ -84,20 +103,9 @@ def _tangent_substep(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: in
                 for c in range(count):
                     dstate[index, c] = dseen[c]
                 dstate[index, 9 + wire] += share_of_width
-            weight_index = FIRST_WEIGHT + wire * n + j
-            weight = p[weight_index]
-            total += weight
-            dtotal[weight_index] += 1.0
-            argument = (state[index] - centre) / width
-            tanh = math.tanh(argument)
-            sigma = 0.5 * (1.0 + tanh)
-            slope = weight * 0.5 * (1.0 - tanh * tanh) / width
-            fraction += weight * sigma
-            for c in range(count):
-                dfraction[c] += slope * dstate[index, c]
-            dfraction[5 + wire] -= slope
-            dfraction[7 + wire] -= slope * argument
-            dfraction[weight_index] += sigma
+            total += p[FIRST_WEIGHT + wire * n + j]
+            dtotal[FIRST_WEIGHT + wire * n + j] += 1.0
+            fraction += _add_operator_fraction(state, dstate, p, n, wire, j, dfraction)
         if total > 0.0:
             share = fraction / total
             for c in range(count):
@@ -161,7 +169,6 @@ def _initial_shares(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: int
     """The wires' transformed shares of a state (the model's _shares) and their derivatives."""
     count = p.size
     for wire in range(2):
-        centre, width = p[5 + wire], p[7 + wire]
         total, fraction = 0.0, 0.0
         dshares[wire, :] = 0.0
         for j in range(n):
@@ -170,19 +177,7 @@ def _initial_shares(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: int
             shares[wire] = 0.0
             continue
         for j in range(n):
-            index = 2 + wire * n + j
-            weight_index = FIRST_WEIGHT + wire * n + j
-            weight = p[weight_index]
-            argument = (state[index] - centre) / width
-            tanh = math.tanh(argument)
-            sigma = 0.5 * (1.0 + tanh)
-            slope = weight * 0.5 * (1.0 - tanh * tanh) / width
-            fraction += weight * sigma
-            for c in range(count):
-                dshares[wire, c] += slope * dstate[index, c]
-            dshares[wire, 5 + wire] -= slope
-            dshares[wire, 7 + wire] -= slope * argument
-            dshares[wire, weight_index] += sigma
+            fraction += _add_operator_fraction(state, dstate, p, n, wire, j, dshares[wire])
         share = fraction / total
         for j in range(n):
             dshares[wire, FIRST_WEIGHT + wire * n + j] -= share
