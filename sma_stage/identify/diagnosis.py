@@ -701,8 +701,8 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     keep = thinned(v_i, SCREEN_SAMPLES)
     cold_fit = None
     if cold:
-        begun = begun if begun is not None and begun.fits(v_i, w_i) else begin_cold_fit(v_i, w_i, unit, Workers())
-        cold_fit = begun.pending.result()
+        ready = begun is not None and begun.fits(v_i, w_i)
+        cold_fit = begun.pending.result() if ready else _cold_fit(v_i[keep], w_i[keep], unit)
     cold_fits = cold_fit.by_count if isinstance(cold_fit, FitResult) else {}
     jobs = [(count, chain, (v_i, w_i, y_i), valid, cold_fits.get(count)) for count in OPERATOR_CANDIDATES
             if count != last.operators]
@@ -879,10 +879,11 @@ def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: 
     nothing."""
     rounds: list[Round] = []
     current = before
-    begun: list[ColdFit] = []
+    begun: ColdFit | None = None
 
     def begin(chain: Chain) -> None:
-        begun[:] = [begin_cold_fit(*chain.data(*ident), chain.last.gpi_parameters.output_unit, pool)]
+        nonlocal begun
+        begun = begin_cold_fit(*chain.data(*ident), chain.last.gpi_parameters.output_unit, pool)
 
     while len(rounds) < max_rounds and chain.composable and len(chain.effects) < len(EFFECT_NAMES):
         tests = validation.tests(validation.predict(chain.model, chain.start).predicted) if rounds else tests_before
@@ -896,7 +897,7 @@ def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: 
         if recount and chain.composable:
             chain, _ = count_by_held_out(chain, ident, validation, progress, cold=False, pool=pool)
             current = validation.errors(validation.predict(chain.model, chain.start).predicted)
-    return chain, rounds, begun[0] if begun else None
+    return chain, rounds, begun
 
 
 def _report(progress: Progress, message: str) -> None:
