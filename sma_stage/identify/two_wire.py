@@ -36,6 +36,8 @@ SEARCH_EVALUATIONS = 1500
 POLISH_EVALUATIONS = 1500
 DEFAULT_TOLERANCE = 1e-8  # scipy's: the polish, and the search when nothing is polished after it
 SEARCH_TOLERANCE = 1e-4  # the search only ranks the starts; the leaders' polish converges
+STALL_ITERATIONS = 100  # a run stops when its RMS error fell by less than STALL_FRACTION over this many iterations:
+STALL_FRACTION = 0.005  # a crawl (a record no two-wire model fits) that no choice between fits would notice
 START_FIT_MARGIN = COUNT_FIT_MARGIN  # with a held-out record: starts whose RMS error on the record is within this
 # (relative) of the best are told apart there, as the GPI's operator counts are (the record does not tell them apart)
 MIN_HEATED_SAMPLES = 10  # each wire must be heated in at least this many samples
@@ -110,15 +112,13 @@ class TwoWireFitting:
         self.pool = pool or Workers()
         fine = -(-t.size // POLISH_SAMPLES)
         self.problem = _Problem(t[::fine], u[::fine], y[::fine], wire_operators, output_operators, shapes)
-        self.thin = max(1, t.size // SEARCH_SAMPLES)
-        self.polish = self.thin > fine  # the leaders polished on more samples: the thinned cost can rank them wrongly
-        search = _Problem(t[::self.thin], u[::self.thin], y[::self.thin], wire_operators, output_operators,
-                          shapes) if self.polish else self.problem
+        thin = max(1, t.size // SEARCH_SAMPLES)
+        search = _Problem(t[::thin], u[::thin], y[::thin], wire_operators, output_operators,
+                          shapes) if thin > fine else self.problem
         self.search = search
         rng = np.random.default_rng(seed)
         self.searching = [self.pool.submit(_solve, search, search.random_start(rng), SEARCH_EVALUATIONS,
-                                           SEARCH_TOLERANCE if self.polish else DEFAULT_TOLERANCE)
-                          for _ in range(starts)]
+                                           SEARCH_TOLERANCE) for _ in range(starts)]
 
     def result(self, held_out: HeldOut | None = None) -> TwoWireFit:
         """The fitted model: waits for the starts, then polishes the POLISHED best fits on more samples and keeps the
@@ -134,11 +134,10 @@ class TwoWireFitting:
 
         if held_out is not None:
             leaders = searched[:1] + sorted(admitted[1:], key=held_out_error(self.search))[:POLISHED]
-        if self.polish:
-            polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
-                         for found in leaders]
-            leaders = sorted((pending.result() for pending in polishing), key=lambda found: found.cost)
-            evaluations += sum(found.nfev for found in leaders)
+        polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
+                     for found in leaders]
+        leaders = sorted((pending.result() for pending in polishing), key=lambda found: found.cost)
+        evaluations += sum(found.nfev for found in leaders)
         best = leaders[0]
         if held_out is not None:
             best = min(_admitted(leaders), key=held_out_error(self.problem))
@@ -252,7 +251,14 @@ class _Problem:
         return fitted @ self.tie / self.span
 
     def solve(self, start: np.ndarray, evaluations: int, tolerance: float = 1e-8) -> object:
-        """scipy's least_squares from start, stopped after `evaluations` or when the cost and the step change by
-        less than `tolerance` (relative)."""
+        """scipy's least_squares from start, stopped after `evaluations`, when the cost and the step change by
+        less than `tolerance` (relative), or when it stalls (STALL_ITERATIONS)."""
+        costs = []
+
+        def stop_when_stalled(intermediate_result: object) -> None:
+            costs.append(intermediate_result.cost)
+            if len(costs) > STALL_ITERATIONS and costs[-1] > costs[-1 - STALL_ITERATIONS] * (1.0 - STALL_FRACTION) ** 2:
+                raise StopIteration
+
         return least_squares(self.residuals, start, jac=self.jacobian, bounds=(self.low, self.high), x_scale="jac",
-                             max_nfev=evaluations, ftol=tolerance, xtol=tolerance)
+                             max_nfev=evaluations, ftol=tolerance, xtol=tolerance, callback=stop_when_stalled)
