@@ -98,9 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
     diagnose.add_argument("--workers", type=worker_count, default=min(os.cpu_count() or 1, 64),
                           help="processes fitting a round's candidates at once (default: one per CPU; the "
                                "result is the same for any count)")
-    diagnose.add_argument("--families", type=family_list, default=("gpi",),
-                          help="model families compared, comma-separated: gpi (the default), gpi_free (its density "
-                               "as free weights), two_wire, bouc_wen (a baseline); the one "
+    diagnose.add_argument("--families", type=family_list, default=None,
+                          help="model families compared, comma-separated (default: all of them): gpi, gpi_free (its "
+                               "density as free weights), two_wire, bouc_wen (a baseline); the one "
                                "with the lowest validation error (BIC between those within 5 %%) is written as "
                                "model.yaml")
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))

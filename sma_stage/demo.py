@@ -21,6 +21,7 @@ import numpy as np
 from sma_stage.cli import family_list
 from sma_stage.commands.paper import evaluate_paper
 from sma_stage.errors import InputError
+from sma_stage.identify.families import FAMILIES
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.model import forward, inverse, load_model_file
 from sma_stage.model.identified import any_model_from_yaml_text
@@ -69,7 +70,7 @@ class EndToEndSettings:
     excite_duration_s: float = 1000.0  # the paper's identification signal
     excite_period_s: float = 250.0
     operators: int = 10
-    families: tuple[str, ...] = ("gpi",)  # model families the refit compares (the node's `families`)
+    families: tuple[str, ...] = FAMILIES  # model families the refit compares (the node's `families`)
     run_s: float = 1000.0              # the paper's validation signal
     settle_s: float = 60.0             # before each run: at the bottom of the range, then at the first setpoint
     stroke_fraction: float = 0.8       # the setpoint spans this fraction of the measured stroke
@@ -545,8 +546,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS_DOMAIN_ID for part 3 (default: $ROS_DOMAIN_ID, else derived from the pid)")
     parser.add_argument("--families", type=family_list, default=EndToEndSettings.families,
-                        help="model families the refit in part 3 compares, comma-separated (default: gpi; all: "
-                             "gpi,gpi_free,two_wire,bouc_wen)")
+                        help="model families the refit in part 3 compares, comma-separated (default: all, "
+                             "gpi,gpi_free,two_wire,bouc_wen; the GPI alone: gpi)")
     args = parser.parse_args(argv)
     began = time.monotonic()
     with ExitStack() as stack:

@@ -252,6 +252,24 @@ def test_the_fit_jacobian_is_the_derivative_of_the_residuals(shapes):
             assert error <= 2e-4 * np.linalg.norm(differences), (column, error)
 
 
+def test_a_run_stops_where_its_error_stalls_and_keeps_the_point_it_reached(monkeypatch):
+    """A run whose RMS error falls by less than STALL_FRACTION over STALL_ITERATIONS iterations ends there
+    (status -2), with the point reached and its cost; with no stall fraction it runs to its tolerance."""
+    import sma_stage.identify.two_wire as two_wire
+
+    t, u = excitation(600)
+    problem = two_wire._Problem(t, u, example_model().predict(t, u), 4, 5, "shared")
+    start = problem.random_start(np.random.default_rng(3))
+    free = problem.solve(start, 60, two_wire.SEARCH_TOLERANCE)
+    monkeypatch.setattr(two_wire, "STALL_ITERATIONS", 2)
+    monkeypatch.setattr(two_wire, "STALL_FRACTION", 1.0)  # any run that has not reached zero error stalls
+    stalled = problem.solve(start, 60, two_wire.SEARCH_TOLERANCE)
+    assert free.status > 0 and free.nfev > 3
+    assert stalled.status == -2 and stalled.nfev <= 4
+    assert stalled.cost == pytest.approx(0.5 * np.sum(problem.residuals(stalled.x) ** 2), rel=1e-12)
+    assert stalled.cost < 0.5 * np.sum(problem.residuals(start) ** 2)
+
+
 def test_a_record_heating_one_wire_only_is_refused():
     t = np.arange(0.0, 200.0, 0.2)
     u = 4.0 * np.abs(np.sin(t / 20.0))

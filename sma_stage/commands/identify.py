@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from sma_stage.errors import InputError
+from sma_stage.identify.families import FAMILIES
 from sma_stage.identify.fit import predict
 from sma_stage.identify.pipeline import GPI_MODEL_FILE, Identification, identify_recording
 from sma_stage.identify.report import (
@@ -119,15 +120,16 @@ def run_fit(args: argparse.Namespace) -> dict:
 
 
 def run_diagnose(args: argparse.Namespace) -> dict:
-    """Fit, test the validation residual, add the effects the model lacks, report before and after; the
-    model written is the GPI with those effects."""
+    """Fit, test the validation residual, add the effects the model lacks, compare the model families (all of
+    them unless --families names some), report before and after; the model written is the chosen family's."""
     check_memory([args.data, args.validate])
     with RunFolder(args.out) as run:
         data = read_data(args.data, args)
         valid = read_data(args.validate, args) if args.validate else None
         found = identify_recording(data, valid, args.holdout, operators=args.operators,
                                    diagnose_rounds=args.rounds, output_unit=args.unit, progress=progress_line,
-                                   source=str(args.data), workers=args.workers, families=args.families,
+                                   source=str(args.data), workers=args.workers,
+                                   families=args.families or FAMILIES,
                                    max_fit_samples=args.max_fit_samples)
         if found.diagnosis is None:
             raise InputError(found.warnings[0] if found.warnings else "the diagnosis did not run")

@@ -66,7 +66,7 @@ from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
 from sma_stage.identify.diagnosis import lower_priority, warm_up
-from sma_stage.identify.families import check_families
+from sma_stage.identify.families import FAMILIES, check_families
 from sma_stage.identify.history import ModelHistory, judge_swap, started_from
 from sma_stage.identify.pipeline import (
     FIT_SAMPLES,
@@ -120,8 +120,9 @@ IDENTIFICATION_PARAMS = [
           "in the model written and pushed", 0, 4),
     Param("diagnose_workers", 1, "processes fitting a diagnosis round's candidates at once (1: in this node's "
           "process; more finish sooner and take CPU from a stage on the same computer)", 1, 64),
-    Param("families", ["gpi"], "model families ~/refit fits on the same recording: gpi, gpi_free, two_wire, bouc_wen; the one with the "
-          "lowest held-out error (then BIC) is written and pushed, and the compensator runs it"),
+    Param("families", list(FAMILIES), "model families ~/refit fits on the same recording (default all: gpi, gpi_free, "
+          "two_wire, bouc_wen); the one with the lowest held-out error (then BIC) is written and pushed, and the "
+          "compensator runs it"),
     Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
           read_only=True),
