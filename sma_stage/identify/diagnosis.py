@@ -702,7 +702,7 @@ def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: 
     cold_fit = None
     if cold:
         ready = begun is not None and begun.fits(v_i, w_i)
-        cold_fit = begun.pending.result() if ready else _cold_fit(v_i[keep], w_i[keep], unit)
+        cold_fit = begun.pending.result() if ready else _cold_fit(v_i, w_i, unit)
     cold_fits = cold_fit.by_count if isinstance(cold_fit, FitResult) else {}
     jobs = [(count, chain, (v_i, w_i, y_i), valid, cold_fits.get(count)) for count in OPERATOR_CANDIDATES
             if count != last.operators]
@@ -748,12 +748,13 @@ class ColdFit:
 
 def begin_cold_fit(v: np.ndarray, w: np.ndarray, unit: str, pool: Workers) -> ColdFit:
     """count_by_held_out's cold fit of (v, w) begun in the pool's processes (with workers 1: when asked for)."""
-    keep = thinned(v, SCREEN_SAMPLES)
-    return ColdFit(v, w, pool.submit(_cold_fit, v[keep], w[keep], unit))
+    return ColdFit(v, w, pool.submit(_cold_fit, v, w, unit))
 
 
 def _cold_fit(v: np.ndarray, w: np.ndarray, unit: str) -> FitResult | NotFitted:
-    return attempt("GPI", lambda: fit_gpi(v, w, output_unit=unit))
+    """A fit of every operator count from cold starts on (v, w) thinned to SCREEN_SAMPLES."""
+    keep = thinned(v, SCREEN_SAMPLES)
+    return attempt("GPI", lambda: fit_gpi(v[keep], w[keep], output_unit=unit))
 
 
 def _count_option(count: int, chain: Chain, data: tuple[np.ndarray, np.ndarray, np.ndarray], valid: Validation,

@@ -113,16 +113,15 @@ class TwoWireFitting:
         fine = -(-t.size // POLISH_SAMPLES)
         self.problem = _Problem(t[::fine], u[::fine], y[::fine], wire_operators, output_operators, shapes)
         thin = max(1, t.size // SEARCH_SAMPLES)
-        search = _Problem(t[::thin], u[::thin], y[::thin], wire_operators, output_operators,
-                          shapes) if thin > fine else self.problem
-        self.search = search
+        self.search = _Problem(t[::thin], u[::thin], y[::thin], wire_operators, output_operators,
+                               shapes) if thin > fine else self.problem
         rng = np.random.default_rng(seed)
-        self.searching = [self.pool.submit(_solve, search, search.random_start(rng), SEARCH_EVALUATIONS,
+        self.searching = [self.pool.submit(_solve, self.search, self.search.random_start(rng), SEARCH_EVALUATIONS,
                                            SEARCH_TOLERANCE) for _ in range(starts)]
 
     def result(self, held_out: HeldOut | None = None) -> TwoWireFit:
-        """The fitted model: waits for the starts, then polishes the POLISHED best fits on more samples and keeps the
-        best. With held_out: the best fit and the POLISHED other starts within START_FIT_MARGIN of it that predict
+        """The fitted model: waits for the starts, then polishes the POLISHED best fits (on more samples when the
+        search ran on a thinned copy) and keeps the best. With held_out: the best fit and the POLISHED other starts within START_FIT_MARGIN of it that predict
         held_out best are polished, and of those still within the margin, the one that predicts it best is kept."""
         searched = sorted((pending.result() for pending in self.searching), key=lambda found: found.cost)
         evaluations = sum(found.nfev for found in searched)
