@@ -111,10 +111,20 @@ def _niceness(_: int, progress=None) -> int:
     return os.getpriority(os.PRIO_PROCESS, 0)
 
 
-def test_worker_processes_run_at_a_lower_priority_than_their_parent():
-    """A refit's workers yield the CPU to a stage on the same computer (bench/bench_long_refit.py)."""
-    with Workers(2) as pool:
-        assert set(pool.run(_niceness, [(1,), (2,)], None, "{}")) == {os.getpriority(os.PRIO_PROCESS, 0) + 10}
+@pytest.mark.parametrize("niceness", [None, 3, 0])
+def test_worker_processes_run_niceness_levels_below_their_parent(niceness):
+    """A refit's workers yield the CPU to a stage on the same computer (bench/bench_long_refit.py): 10 levels
+    below their parent unless told otherwise, at its priority with 0."""
+    pool = Workers(2) if niceness is None else Workers(2, niceness=niceness)
+    with pool:
+        levels = set(pool.run(_niceness, [(1,), (2,)], None, "{}"))
+    assert levels == {min(os.getpriority(os.PRIO_PROCESS, 0) + (10 if niceness is None else niceness), 19)}
+
+
+@pytest.mark.parametrize("niceness", [-1, 20, 2.5, True, "10"])
+def test_a_niceness_out_of_range_is_refused_in_one_line(niceness):
+    with pytest.raises(InputError, match=r"^niceness must be an integer from 0 to 19, got .*$"):
+        Workers(2, niceness=niceness)
 
 
 def test_workers_that_cannot_start_give_a_one_line_error(monkeypatch):

@@ -16,7 +16,7 @@ pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
-from test_end_to_end import refit_after_excitation  # noqa: E402
+from test_end_to_end import TEST_PRIORITY, refit_after_excitation  # noqa: E402
 
 from sma_stage.model.identified import any_model_from_yaml_text  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
@@ -127,7 +127,7 @@ def test_the_watch_flags_a_load_step_swaps_in_a_refit_and_rolls_back(tmp_path):
         nodes.start("identification_node", {"excite_duration": EXCITE_S, "excite_rate_hz": 1.0 / STEP_S, "operators": 5,
                                              "min_samples": 60, "model_file": str(tmp_path / "model.yaml"),
                                              "use_sim_time": True, "on_drift": "refit", "families": FAMILIES,
-                                             **WATCH_WINDOWS},
+                                             **WATCH_WINDOWS, **TEST_PRIORITY},
                     [CONFIG_DIR / "identification.yaml"])
         with RosClient(domain, "watch_test", use_sim_time=True) as client:
             # the stage, whose clock the others run on, last: their start (seconds on a cold numba cache) is not

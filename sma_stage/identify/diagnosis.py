@@ -412,16 +412,29 @@ class Pending:
         return self._value
 
 
+WORKER_NICENESS = 10  # the workers yield the CPU to a stage or a node on the same computer
+MAX_NICENESS = 19
+
+
+def check_niceness(niceness: int) -> int:
+    """niceness as an int from 0 to MAX_NICENESS; InputError (one line) otherwise."""
+    if isinstance(niceness, bool) or not isinstance(niceness, (int, np.integer)) or not 0 <= niceness <= MAX_NICENESS:
+        raise InputError(f"niceness must be an integer from 0 to {MAX_NICENESS}, got {niceness!r}")
+    return int(niceness)
+
+
 class Workers:
     """Where a round's candidates are fitted: in this process, one after the other (workers 1), or in up to
     `workers` processes at once (a forkserver's children: safe beside the threads of a ROS node). Each
     candidate's fit is the same computation either way, so the diagnosis does not depend on the count; a
-    worker's progress messages are not relayed, only each candidate's outcome."""
+    worker's progress messages are not relayed, only each candidate's outcome. The processes run `niceness`
+    levels below this one (lower_priority)."""
 
-    def __init__(self, workers: int = 1) -> None:
+    def __init__(self, workers: int = 1, niceness: int = WORKER_NICENESS) -> None:
         if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
             raise InputError(f"workers must be a positive integer, got {workers!r}")
         self.workers = int(workers)
+        self.niceness = check_niceness(niceness)
         self._executor: ProcessPoolExecutor | None = None
         self._starting: threading.Thread | None = None
         self._failure = "unknown reason"
@@ -496,7 +509,8 @@ class Workers:
         try:
             context = multiprocessing.get_context("forkserver")
             context.set_forkserver_preload([__name__])
-            executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=_worker_setup)
+            executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=_worker_setup,
+                                           initargs=(self.niceness,))
             for _ in range(self.workers):
                 executor.submit(warm_up)
         except (OSError, RuntimeError, ValueError) as error:
@@ -541,9 +555,6 @@ def one_blas_thread() -> threadpool_limits:
     return threadpool_limits(1, user_api="blas")
 
 
-WORKER_NICENESS = 10  # the workers yield the CPU to a stage or a node on the same computer
-
-
 def _as_in_a_worker(function: Callable[..., object], *args: object) -> object:
     """function(*args) in this process with BLAS on one thread, as a worker process runs it: with OpenBLAS on
     two threads a two-wire fit took another path and ended at another model (the result must not depend on
@@ -552,21 +563,23 @@ def _as_in_a_worker(function: Callable[..., object], *args: object) -> object:
         return function(*args)
 
 
-def _worker_setup() -> None:
-    """A worker process: BLAS on one thread, and a lower priority than the process that started it."""
+def _worker_setup(niceness: int) -> None:
+    """A worker process: BLAS on one thread, and `niceness` levels below the process that started it."""
     one_blas_thread()
-    lower_priority()
+    lower_priority(niceness=niceness)
 
 
-def lower_priority(thread: bool = False) -> None:
-    """Lower this process's scheduling priority (or only the calling thread's, on Linux) by WORKER_NICENESS, so
+def lower_priority(thread: bool = False, niceness: int = WORKER_NICENESS) -> None:
+    """Lower this process's scheduling priority (or only the calling thread's, on Linux) by `niceness` levels, so
     that a long fit yields the CPU to a stage's control cycle; nothing where the system does not allow it."""
+    if niceness == 0:
+        return
     try:
         if thread and sys.platform.startswith("linux"):
             identity = threading.get_native_id()
-            os.setpriority(os.PRIO_PROCESS, identity, os.getpriority(os.PRIO_PROCESS, identity) + WORKER_NICENESS)
+            os.setpriority(os.PRIO_PROCESS, identity, os.getpriority(os.PRIO_PROCESS, identity) + niceness)
         elif not thread:
-            os.nice(WORKER_NICENESS)
+            os.nice(niceness)
     except (OSError, AttributeError):
         pass
 

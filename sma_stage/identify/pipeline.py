@@ -13,7 +13,14 @@ import numpy as np
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
-from sma_stage.identify.diagnosis import Diagnosis, Pending, Workers, diagnose, one_blas_thread
+from sma_stage.identify.diagnosis import (
+    WORKER_NICENESS,
+    Diagnosis,
+    Pending,
+    Workers,
+    diagnose,
+    one_blas_thread,
+)
 from sma_stage.identify.families import (
     HELD_CURRENT_FAMILIES,
     FamilyRow,
@@ -57,7 +64,8 @@ class Identification:
 def identify_recording(record: Series, validation: Series | None = None, holdout_fraction: float | None = None,
                        operators: int | None = None, diagnose_rounds: int = 0, output_unit: str = "m",
                        progress: Progress = None, source: str = "", workers: int = 1,
-                       families: Sequence[str] = ("gpi",), max_fit_samples: int | None = None) -> Identification:
+                       families: Sequence[str] = ("gpi",), max_fit_samples: int | None = None,
+                       niceness: int = WORKER_NICENESS) -> Identification:
     """Identify the model of a record (t [s], input [A], output [output_unit]).
 
     Validation: a separate record (`validation`, run from an idle stage), or the held-out tail of this one
@@ -66,7 +74,8 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     the model deployed is the GPI with every effect it added; should the diagnosis fail, the plain fit is
     deployed and `warnings` says why in one line. The model's state is where it leaves the record, run from
     the start the diagnosis found for it (from rest without a diagnosis). workers: processes that fit the
-    diagnosis's candidates and, meanwhile, the held-current families (the result is the same for any count).
+    diagnosis's candidates and, meanwhile, the held-current families (the result is the same for any count);
+    they run `niceness` levels below this process (0: at its priority).
 
     families (sma_stage.identify.families.FAMILIES): with validation data and more than the GPI named, each
     family is fitted on the same record and the one chosen by held-out error and BIC is deployed; the report's
@@ -81,7 +90,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
     families = check_families(families)
-    with Workers(workers) as pool:
+    with Workers(workers, niceness) as pool:
         if diagnose_rounds > 0 or families != ("gpi",):
             pool.start()  # the processes load their kernels while this one fits the GPI
         return _identify(record, validation, holdout_fraction, operators, diagnose_rounds, output_unit, progress,

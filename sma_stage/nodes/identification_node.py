@@ -65,7 +65,7 @@ from std_srvs.srv import Trigger
 from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
-from sma_stage.identify.diagnosis import lower_priority, warm_up
+from sma_stage.identify.diagnosis import MAX_NICENESS, WORKER_NICENESS, lower_priority, warm_up
 from sma_stage.identify.families import FAMILIES, check_families
 from sma_stage.identify.history import ModelHistory, judge_swap, started_from
 from sma_stage.identify.pipeline import (
@@ -120,6 +120,9 @@ IDENTIFICATION_PARAMS = [
           "in the model written and pushed", 0, 4),
     Param("diagnose_workers", 1, "processes fitting a diagnosis round's candidates at once (1: in this node's "
           "process; more finish sooner and take CPU from a stage on the same computer)", 1, 64),
+    Param("refit_niceness", WORKER_NICENESS, "nice levels a refit's thread and its worker processes run below the "
+          "node's other threads (Linux), so that a stage on the same computer keeps its cycles; 0: at the node's "
+          "priority (a computer that only identifies)", 0, MAX_NICENESS),
     Param("families", list(FAMILIES), "model families ~/refit fits on the same recording (default all: gpi, gpi_free, "
           "two_wire, bouc_wen); the one with the lowest held-out error (then BIC) is written and pushed, and the "
           "compensator runs it"),
@@ -772,12 +775,13 @@ class IdentificationNode(Node):
                                   diagnose_rounds=int(self.values["diagnose_rounds"]), source=source,
                                   workers=int(self.values["diagnose_workers"]),
                                   families=tuple(self.values["families"]),
-                                  max_fit_samples=int(self.values["max_fit_samples"]))
+                                  max_fit_samples=int(self.values["max_fit_samples"]),
+                                  niceness=int(self.values["refit_niceness"]))
 
     def refit(self) -> dict:
-        """Identify, write the model file, push the model; the report (InputError when refused). Runs at a lower
-        priority than the node's other threads (a stage on the same computer keeps its cycles)."""
-        lower_priority(thread=True)
+        """Identify, write the model file, push the model; the report (InputError when refused). Runs
+        refit_niceness levels below the node's other threads (a stage on the same computer keeps its cycles)."""
+        lower_priority(thread=True, niceness=int(self.values["refit_niceness"]))
         series = self.snapshot()
         self.get_logger().info(f"~/refit: fitting {len(series)} samples")
         found = self.identify(series, "identification node ~/refit")
@@ -938,7 +942,7 @@ class IdentificationNode(Node):
             return
 
         def work() -> None:
-            lower_priority(thread=True)
+            lower_priority(thread=True, niceness=int(self.values["refit_niceness"]))
             try:
                 self.guarded_refit(what, series(), hysteresis_only)
             except InputError as error:
