@@ -121,8 +121,9 @@ class TwoWireFitting:
 
     def result(self, held_out: HeldOut | None = None) -> TwoWireFit:
         """The fitted model: waits for the starts, then polishes the POLISHED best fits (on more samples when the
-        search ran on a thinned copy) and keeps the best. With held_out: the best fit and the POLISHED other starts within START_FIT_MARGIN of it that predict
-        held_out best are polished, and of those still within the margin, the one that predicts it best is kept."""
+        search ran on a thinned copy) and keeps the best. With held_out: the best fit and the POLISHED other starts
+        within START_FIT_MARGIN of it that predict held_out best are polished, and of those still within the
+        margin, the one that predicts it best is kept."""
         searched = sorted((pending.result() for pending in self.searching), key=lambda found: found.cost)
         evaluations = sum(found.nfev for found in searched)
         admitted = _admitted(searched) if held_out is not None else []

@@ -776,12 +776,20 @@ class IdentificationNode(Node):
                                   workers=int(self.values["diagnose_workers"]),
                                   families=tuple(self.values["families"]),
                                   max_fit_samples=int(self.values["max_fit_samples"]),
-                                  niceness=int(self.values["refit_niceness"]))
+                                  niceness=self.refit_niceness())
+
+    def refit_niceness(self) -> int:
+        """Nice levels a refit's thread and its worker processes run below the node's other threads."""
+        return int(self.values["refit_niceness"])
+
+    def lower_refit_priority(self) -> None:
+        """The calling thread (a refit's) refit_niceness levels down: a stage on the same computer keeps its cycles."""
+        lower_priority(thread=True, niceness=self.refit_niceness())
 
     def refit(self) -> dict:
         """Identify, write the model file, push the model; the report (InputError when refused). Runs
         refit_niceness levels below the node's other threads (a stage on the same computer keeps its cycles)."""
-        lower_priority(thread=True, niceness=int(self.values["refit_niceness"]))
+        self.lower_refit_priority()
         series = self.snapshot()
         self.get_logger().info(f"~/refit: fitting {len(series)} samples")
         found = self.identify(series, "identification node ~/refit")
@@ -942,7 +950,7 @@ class IdentificationNode(Node):
             return
 
         def work() -> None:
-            lower_priority(thread=True, niceness=int(self.values["refit_niceness"]))
+            self.lower_refit_priority()
             try:
                 self.guarded_refit(what, series(), hysteresis_only)
             except InputError as error:
