@@ -107,6 +107,16 @@ def test_workers_started_in_the_background_answer_in_order_and_close():
     assert unused._executor is None and unused._starting is None
 
 
+def test_a_job_submitted_after_the_pool_closed_is_refused_and_starts_no_processes():
+    """A job of another thread that comes late (a two-wire fit's polish after a cancelled refit) must not launch
+    a second pool nobody closes."""
+    pool = Workers(2)
+    pool.close()
+    with pytest.raises(InputError, match=r"^the identification's worker processes were stopped$"):
+        pool.submit(divmod, 7, 2)
+    assert pool._executor is None and pool._starting is None
+
+
 def _niceness(_: int, progress=None) -> int:
     return os.getpriority(os.PRIO_PROCESS, 0)
 

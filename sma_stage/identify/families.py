@@ -67,10 +67,11 @@ def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: W
     if family == "bouc_wen":
         return pool.submit(fit_bouc_wen, ident.t, ident.input, ident.output, output_unit)
     try:
-        fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool)
+        fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool,
+                                 held_out=held_out)
     except InputError as error:
         return Pending(partial(_raise, error))
-    return Pending(partial(fitting.result, held_out))
+    return Pending(fitting.result)
 
 
 def _raise(error: Exception) -> None:

@@ -60,15 +60,16 @@ def fit_free_weights(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np
     thin = max(1, t.size // SEARCH_SAMPLES)
     scale = float(np.max(model.parameters.densities(model.operators)))
 
-    def weighted(x: np.ndarray, rows: slice) -> tuple[IdentifiedModel, np.ndarray]:
+    def weighted(x: np.ndarray, rows: slice) -> tuple[IdentifiedModel, np.ndarray, np.ndarray]:
+        """The trial model, its best weights and its residual on the rows."""
         trial = replace(model, parameters=model.parameters.replace(**dict(zip(SEARCHED, x, strict=True))))
-        return trial, _weights(trial, t[rows], u[rows], y[rows], start, scale)
+        columns = operator_outputs(trial, t[rows], u[rows], start)
+        target = _target(trial, t[rows], u[rows], y[rows], start)
+        weights = _weights(columns, target, scale)
+        return trial, weights, columns @ weights - target
 
     def residual(x: np.ndarray) -> np.ndarray:
-        trial, weights = weighted(x, slice(None, None, thin))
-        rows = slice(None, None, thin)
-        return operator_outputs(trial, t[rows], u[rows], start) @ weights - _target(trial, t[rows], u[rows],
-                                                                                    y[rows], start)
+        return weighted(x, slice(None, None, thin))[2]
 
     x0 = np.array([getattr(model.parameters, name) for name in SEARCHED])
     try:
@@ -76,7 +77,7 @@ def fit_free_weights(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np
         x = found.x if found.cost <= 0.5 * float(np.sum(residual(x0) ** 2)) else x0
     except (ValueError, InputError):  # a trial the model refuses (a threshold step <= 0): keep the fit's
         x = x0
-    trial, weights = weighted(x, slice(None))
+    trial, weights, _ = weighted(x, slice(None))
     return replace(trial, parameters=trial.parameters.replace(weights=tuple(weights)), state=None)
 
 
@@ -87,12 +88,10 @@ def _target(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray,
     return y - output_offset(model, t, start, u)
 
 
-def _weights(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np.ndarray, start: Start,
-             scale: float) -> np.ndarray:
-    """The non-negative weights (the first at least FIRST_WEIGHT_FLOOR scale) that fit y best for this model's
-    envelopes and thresholds."""
-    lower = np.zeros(model.operators)
+def _weights(columns: np.ndarray, target: np.ndarray, scale: float) -> np.ndarray:
+    """The non-negative weights (the first at least FIRST_WEIGHT_FLOOR scale) whose sum of the operators' outputs
+    (columns, operator_outputs) fits target best."""
+    lower = np.zeros(columns.shape[1])
     lower[0] = FIRST_WEIGHT_FLOOR * scale
-    solution = lsq_linear(operator_outputs(model, t, u, start), _target(model, t, u, y, start),
-                          bounds=(lower, np.inf), method="bvls")
+    solution = lsq_linear(columns, target, bounds=(lower, np.inf), method="bvls")
     return np.maximum(solution.x, lower)
