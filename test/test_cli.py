@@ -289,9 +289,9 @@ def test_sigterm_ends_a_diagnosis_and_its_workers_as_ctrl_c_does(data, tmp_path)
                                 str(data[1]), "--workers", "2", "--out", str(out)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 60.0
-    while time.monotonic() < deadline and len(descendants(process.pid)) < 3:
+    while time.monotonic() < deadline and len(descendants(process.pid)) < 2:
         time.sleep(0.1)
-    assert len(descendants(process.pid)) >= 3, "the forkserver and its workers started"
+    assert len(descendants(process.pid)) >= 2, "the workers started (gpi_tool forks them)"
     process.send_signal(signal.SIGTERM)
     _, error = process.communicate(timeout=30)
     assert process.returncode == 143 and error.strip().endswith("gpi_tool: terminated"), error

@@ -107,6 +107,44 @@ def test_workers_started_in_the_background_answer_in_order_and_close():
     assert unused._executor is None and unused._starting is None
 
 
+START_METHOD_SCRIPT = """
+import os, signal, sys, threading
+from sma_stage.identify.diagnosis import Workers
+
+
+def parent(_):
+    return os.getppid()
+
+
+def ended_by_sigterm(_):
+    return signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+if __name__ == "__main__":
+    if sys.argv[1] == "beside-a-thread":
+        threading.Thread(target=threading.Event().wait, daemon=True).start()
+    signal.signal(signal.SIGTERM, lambda *_: None)  # gpi_tool's raises Terminated
+    with Workers(2) as pool:
+        parents = set(pool.run(parent, [(1,), (2,)], None, "{}"))
+        print("forked" if parents == {os.getpid()} else "forkserver", all(pool.run(ended_by_sigterm, [(1,), (2,)],
+              None, "{}")), pool.run(divmod, [(7, 2), (9, 4)], None, "{}"))
+"""
+
+
+@pytest.mark.parametrize("where, started", [("alone", "forked"), ("beside-a-thread", "forkserver")])
+def test_workers_are_forked_only_from_a_process_with_no_other_thread(tmp_path, where, started):
+    """gpi_tool forks its workers (no forkserver to start: about 2 s of CPU); a process with other threads (a ROS
+    node) starts them from a forkserver, where no other thread's lock is copied into them. Either way SIGTERM
+    ends a worker (a forked one that kept gpi_tool's handler raised instead, and a terminated pool could hang)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "start_method.py"
+    script.write_text(START_METHOD_SCRIPT)
+    ran = subprocess.run([sys.executable, str(script), where], capture_output=True, text=True, timeout=120)
+    assert ran.returncode == 0 and ran.stdout.split() == [started, "True", "[(3,", "1),", "(2,", "1)]"], ran.stderr
+
+
 def test_a_job_submitted_after_the_pool_closed_is_refused_and_starts_no_processes():
     """A job of another thread that comes late (a two-wire fit's polish after a cancelled refit) must not launch
     a second pool nobody closes."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
+import signal
 import sys
 import threading
 import time
@@ -425,7 +426,7 @@ def check_niceness(niceness: int) -> int:
 
 class Workers:
     """Where a round's candidates are fitted: in this process, one after the other (workers 1), or in up to
-    `workers` processes at once (a forkserver's children: safe beside the threads of a ROS node). Each
+    `workers` processes at once (forked, or a forkserver's children beside other threads: Workers.start). Each
     candidate's fit is the same computation either way, so the diagnosis does not depend on the count; a
     worker's progress messages are not relayed, only each candidate's outcome. The processes run `niceness`
     levels below this one (lower_priority)."""
@@ -500,17 +501,26 @@ class Workers:
         executor.shutdown(wait=True, cancel_futures=True)
 
     def start(self) -> None:
-        """Start the worker processes in the background, each loading the fit's compiled kernels (warm_up),
-        while this process goes on (the plain fit): the first round then does not wait for them (about
-        2 s). Nothing with workers 1."""
-        if self.workers > 1 and self._starting is None and self._executor is None:
-            self._starting = threading.Thread(target=self._launch, name="diagnosis-workers", daemon=True)
+        """Start the worker processes, each loading the fit's compiled kernels (warm_up), while this process goes on
+        (the plain fit): the first round then does not wait for them. A process with no other thread (gpi_tool, a
+        script) forks them, in milliseconds; any other (a ROS node) has a thread start them from a forkserver, where
+        no other thread's lock is copied into them (the forkserver's start costs about 2 s of CPU). Nothing with
+        workers 1."""
+        if self.workers == 1 or self._starting is not None or self._executor is not None:
+            return
+        if threading.active_count() == 1 and sys.platform.startswith("linux"):
+            self._launch("fork")
+        else:
+            self._starting = threading.Thread(target=self._launch, args=("forkserver",), name="diagnosis-workers",
+                                              daemon=True)
             self._starting.start()
 
-    def _launch(self) -> None:
+    def _launch(self, method: str) -> None:
+        """Create the executor (start method "fork" or "forkserver") and have each worker load the kernels."""
         try:
-            context = multiprocessing.get_context("forkserver")
-            context.set_forkserver_preload([__name__])
+            context = multiprocessing.get_context(method)
+            if method == "forkserver":
+                context.set_forkserver_preload([__name__])
             executor = ProcessPoolExecutor(self.workers, mp_context=context, initializer=_worker_setup,
                                            initargs=(self.niceness,))
             for _ in range(self.workers):
@@ -569,7 +579,10 @@ def _as_in_a_worker(function: Callable[..., object], *args: object) -> object:
 
 
 def _worker_setup(niceness: int) -> None:
-    """A worker process: BLAS on one thread, and `niceness` levels below the process that started it."""
+    """A worker process: SIGTERM ends it (a forked worker does not keep gpi_tool's handler, which would have it
+    raise instead of ending when the pool is terminated), BLAS on one thread, and `niceness` levels below the
+    process that started it."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     one_blas_thread()
     lower_priority(niceness=niceness)
 
