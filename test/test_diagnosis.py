@@ -145,16 +145,6 @@ def test_workers_are_forked_only_from_a_process_with_no_other_thread(tmp_path, w
     assert ran.returncode == 0 and ran.stdout.split() == [started, "True", "[(3,", "1),", "(2,", "1)]"], ran.stderr
 
 
-def test_a_job_submitted_after_the_pool_closed_is_refused_and_starts_no_processes():
-    """A job of another thread that comes late (a two-wire fit's polish after a cancelled refit) must not launch
-    a second pool nobody closes."""
-    pool = Workers(2)
-    pool.close()
-    with pytest.raises(InputError, match=r"^the identification's worker processes were stopped$"):
-        pool.submit(divmod, 7, 2)
-    assert pool._executor is None and pool._starting is None
-
-
 def _niceness(_: int, progress=None) -> int:
     return os.getpriority(os.PRIO_PROCESS, 0)
 

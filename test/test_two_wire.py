@@ -11,7 +11,7 @@ from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import Workers
 from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
-from sma_stage.identify.two_wire import POLISHED, STARTS, HeldOut, TwoWireFitting, fit_two_wire
+from sma_stage.identify.two_wire import HeldOut, TwoWireFitting, fit_two_wire
 from sma_stage.model.two_wire import TwoWireModel, TwoWireParameters
 
 SPAN_M = 6e-4
@@ -310,14 +310,10 @@ def test_the_two_wire_model_identified_on_the_second_stage_validates(nominal_sta
 
 
 def test_a_fit_whose_starts_run_in_worker_processes_is_the_fit_made_in_this_process(nominal_stage, nominal_fit):
-    """The pool's processes search the starts and polish the leaders (beside a diagnosis, the polish submitted as soon
-    as the starts are searched): the same model."""
+    """The pool's processes search the starts and polish the leaders (beside a diagnosis): the same model."""
     with Workers(2) as pool:
-        fitting = TwoWireFitting(*nominal_stage["identification"], pool=pool, held_out=HeldOut(*nominal_stage["validation"]))
-        fitting._submitter.join(60.0)
-        searched, polishing = fitting._polishing  # the leaders' polish submitted before the result is asked for
-        assert len(searched) == STARTS and 1 <= len(polishing) <= 1 + POLISHED
-        found = fitting.result()
+        fitting = TwoWireFitting(*nominal_stage["identification"], pool=pool)
+        found = fitting.result(HeldOut(*nominal_stage["validation"]))
     assert found.model == nominal_fit.model and found.evaluations == nominal_fit.evaluations
 
 

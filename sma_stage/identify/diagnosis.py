@@ -439,7 +439,6 @@ class Workers:
         self._executor: ProcessPoolExecutor | None = None
         self._starting: threading.Thread | None = None
         self._failure = "unknown reason"
-        self._closed = False  # closed or terminated: nothing more is submitted (a late job of another thread)
 
     def run(self, function: Callable[..., object], jobs: list[tuple], progress: Progress, doing: str,
             then: Callable[[], object] | None = None) -> list[object]:
@@ -490,7 +489,6 @@ class Workers:
 
     def terminate(self) -> None:
         """End the worker processes now, their running jobs with them (a cancelled diagnosis)."""
-        self._closed = True
         self._wait_for_start()
         executor, self._executor = self._executor, None
         if executor is None:
@@ -532,8 +530,6 @@ class Workers:
 
     def _started(self) -> ProcessPoolExecutor:
         """The executor, once start() has launched it (launched here if it was not)."""
-        if self._closed:
-            raise InputError("the identification's worker processes were stopped")
         self.start()
         self._wait_for_start()
         if self._executor is None:
@@ -547,7 +543,6 @@ class Workers:
 
     def close(self) -> None:
         """Stop the worker processes (none were started with workers 1)."""
-        self._closed = True
         self._wait_for_start()
         if self._executor is not None:
             self._executor.shutdown(cancel_futures=True)

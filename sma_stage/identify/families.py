@@ -67,11 +67,10 @@ def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: W
     if family == "bouc_wen":
         return pool.submit(fit_bouc_wen, ident.t, ident.input, ident.output, output_unit)
     try:
-        fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool,
-                                 held_out=held_out)
+        fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool)
     except InputError as error:
         return Pending(partial(_raise, error))
-    return Pending(fitting.result)
+    return Pending(partial(fitting.result, held_out))
 
 
 def _raise(error: Exception) -> None:

@@ -10,7 +10,6 @@ predict the stage simulator better and the second physical stage worse in its wo
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,7 +20,7 @@ from scipy.optimize import least_squares
 from sma_stage.errors import InputError
 from sma_stage.identify._two_wire_sensitivity import rest_with_sensitivities, run_with_sensitivities
 from sma_stage.identify.cancel import check_cancelled
-from sma_stage.identify.diagnosis import CANCEL_POLL_S, COUNT_FIT_MARGIN, Pending, Workers
+from sma_stage.identify.diagnosis import COUNT_FIT_MARGIN, Workers
 from sma_stage.identify.fit import check_data, information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.identified import _record
@@ -71,8 +70,8 @@ def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: in
     from a stage at rest. InputError (one line) when the record cannot identify it. pool: its processes search
     the starts and polish the leaders at once (the result is the same without). held_out: a record the starts
     that fit within START_FIT_MARGIN of the best are told apart on (TwoWireFitting.result)."""
-    return TwoWireFitting(t, u, y, wire_operators, output_operators, starts, seed, output_unit, shapes, pool,
-                          held_out).result()
+    return TwoWireFitting(t, u, y, wire_operators, output_operators, starts, seed, output_unit, shapes,
+                          pool).result(held_out)
 
 
 @dataclass(frozen=True)
@@ -92,14 +91,12 @@ class HeldOut:
 
 class TwoWireFitting:
     """A two-wire fit under way (fit_two_wire's arguments): the record checked and the starts submitted to the
-    pool's processes when it is made, and (with workers) the leaders' polish submitted by a thread of this process
-    as soon as the starts are searched, so that other work goes on meanwhile; `result()` waits for them and gives
-    the TwoWireFit."""
+    pool's processes when it is made, so that other work goes on meanwhile; `result()` waits for them,
+    polishes the leaders and gives the TwoWireFit."""
 
     def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
-                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None,
-                 held_out: HeldOut | None = None) -> None:
+                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None) -> None:
         self.started = time.perf_counter()
         t, u = _record(t, u)
         u, y = check_data(u, y)
@@ -121,50 +118,29 @@ class TwoWireFitting:
         rng = np.random.default_rng(seed)
         self.searching = [self.pool.submit(_solve, self.search, self.search.random_start(rng), SEARCH_EVALUATIONS,
                                            SEARCH_TOLERANCE) for _ in range(starts)]
-        self.held_out = held_out
-        self._polishing: tuple[list, list[Pending]] | BaseException | None = None
-        self._submitter: threading.Thread | None = None
-        if self.pool.workers > 1:
-            self._submitter = threading.Thread(target=self._submit_polish, name="two-wire-polish", daemon=True)
-            self._submitter.start()
 
-    def _submit_polish(self) -> None:
-        """Wait for the starts and submit the leaders' polish (what result() waits for), or keep the failure."""
-        try:
-            self._polishing = self._polish()
-        except BaseException as error:  # noqa: BLE001 -- raised again by result(), in the caller's thread
-            self._polishing = error
-
-    def _polish(self) -> tuple[list, list[Pending]]:
-        """(the searched starts ranked by cost, the polish of the leaders submitted): the POLISHED best fits (on
-        more samples when the search ran on a thinned copy); with held_out, the best fit and the POLISHED other
-        starts within START_FIT_MARGIN of it that predict held_out best."""
+    def result(self, held_out: HeldOut | None = None) -> TwoWireFit:
+        """The fitted model: waits for the starts, then polishes the POLISHED best fits (on more samples when the
+        search ran on a thinned copy) and keeps the best. With held_out: the best fit and the POLISHED other starts
+        within START_FIT_MARGIN of it that predict held_out best are polished, and of those still within the
+        margin, the one that predicts it best is kept."""
         searched = sorted((pending.result() for pending in self.searching), key=lambda found: found.cost)
+        evaluations = sum(found.nfev for found in searched)
+        admitted = _admitted(searched) if held_out is not None else []
         leaders = searched[:POLISHED]
-        if self.held_out is not None:
-            leaders = searched[:1] + sorted(_admitted(searched)[1:], key=self._held_out_error(self.search))[:POLISHED]
-        return searched, [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
-                          for found in leaders]
 
-    def _held_out_error(self, problem: _Problem) -> Callable[[object], float]:
-        return lambda found: self.held_out.rms_pct(TwoWireModel(problem.parameters(found.x)))
+        def held_out_error(problem: _Problem) -> Callable[[object], float]:
+            return lambda found: held_out.rms_pct(TwoWireModel(problem.parameters(found.x)))
 
-    def result(self) -> TwoWireFit:
-        """The fitted model: of the polished leaders the best, or with held_out, of those still within
-        START_FIT_MARGIN of the best, the one that predicts held_out best."""
-        if self._submitter is not None:
-            while self._submitter.is_alive():
-                check_cancelled()
-                self._submitter.join(CANCEL_POLL_S)
-        polishing = self._polishing if self._submitter is not None else self._polish()
-        if isinstance(polishing, BaseException):
-            raise polishing
-        searched, polished = polishing
-        leaders = sorted((pending.result() for pending in polished), key=lambda found: found.cost)
-        evaluations = sum(found.nfev for found in searched) + sum(found.nfev for found in leaders)
+        if held_out is not None:
+            leaders = searched[:1] + sorted(admitted[1:], key=held_out_error(self.search))[:POLISHED]
+        polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
+                     for found in leaders]
+        leaders = sorted((pending.result() for pending in polishing), key=lambda found: found.cost)
+        evaluations += sum(found.nfev for found in leaders)
         best = leaders[0]
-        if self.held_out is not None:
-            best = min(_admitted(leaders), key=self._held_out_error(self.problem))
+        if held_out is not None:
+            best = min(_admitted(leaders), key=held_out_error(self.problem))
         problem, t, u, y = self.problem, self.t, self.u, self.y
         model = TwoWireModel(problem.parameters(best.x), self.output_unit)
         predicted, end = model.run(t, u)
@@ -172,10 +148,9 @@ class TwoWireFitting:
         count = problem.tie.shape[1]
         model = TwoWireModel(model.parameters, self.output_unit, end,
                              {"identified_samples": int(t.size), "shapes": self.shapes})
-        admitted = len(_admitted(searched)) if self.held_out is not None else 0
         return TwoWireFit(model, predicted, error_metrics(y, predicted), cost,
                           information_criterion(cost, t.size, count), evaluations,
-                          time.perf_counter() - self.started, count, admitted)
+                          time.perf_counter() - self.started, count, len(admitted))
 
 
 def _admitted(ranked: list) -> list:
