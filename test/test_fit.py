@@ -9,6 +9,7 @@ import pytest
 
 from sma_stage.errors import InputError
 from sma_stage.identify import fit as fit_module
+from sma_stage.identify._sensitivity import householder_r
 from sma_stage.identify.effects import base as effects_base
 from sma_stage.identify.effects.base import SCREEN_SAMPLES, Refits, cold_fit
 from sma_stage.identify.fit import (
@@ -147,6 +148,20 @@ def test_jacobian_matches_central_differences():
         difference = (forward(u, GPIParameters.from_array(up), OPERATORS)
                       - forward(u, GPIParameters.from_array(down), OPERATORS)) / (2 * step)
         assert np.linalg.norm(jac[:, j] - difference) <= 1e-6 * np.linalg.norm(difference), TRUTH.to_dict()
+
+
+@pytest.mark.parametrize("samples, columns", [(500, 11), (97, 1), (97, 2), (97, 6), (40, 13)])
+def test_the_compiled_qr_gives_lapacks_r_of_the_chosen_columns(samples, columns):
+    rng = np.random.default_rng(columns)
+    rows = rng.standard_normal((columns + 2, samples))
+    order = rng.permutation(columns + 2)[:columns].astype(np.int64)
+    if columns > 3:
+        rows[order[2]] = 0.0  # a column with nothing left to reflect
+    expected = np.linalg.qr(rows[order].T, mode="r")
+    found = householder_r(rows.copy(), order)
+    signs = np.where(np.sign(np.diag(found)) == np.sign(np.diag(expected)), 1.0, -1.0)
+    assert np.allclose(found, signs[:, None] * expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    assert np.all(found == np.triu(found))
 
 
 def test_regressors_recover_a_linear_drift_and_predict_applies_them():

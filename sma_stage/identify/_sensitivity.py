@@ -87,61 +87,87 @@ def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states:
 @numba.njit(cache=True, nogil=True)
 def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
     """Upper-triangular R of the QR factorisation of the matrix whose columns are rows[order] (each row
-    of `rows` one column of length N); `rows` is overwritten. Single-threaded, so a tall-skinny QR costs
-    about 2 N k^2 flops whatever the BLAS threading does. Each reflection is applied to four columns per
-    pass over the samples (four independent sums, each in the same order as one column at a time, so R is
-    the same to the bit; 1.3-1.9x faster, bench/README.md)."""
+    of `rows` one column of length N >= k); `rows` is overwritten. Single-threaded, so a tall-skinny QR costs
+    about 2 N k^2 flops whatever the BLAS threading does. Each reflection's dot products are taken four
+    columns per pass over the samples (the sums are sequential, so their latency sets the pace) and its
+    updates one column per pass (which vectorises); every sum runs in the order of one column at a time,
+    so R is the same to the bit (bench/bench_fit.py's QR table)."""
     k = order.size
     n = rows.shape[1]
     r = np.zeros((k, k))
+    unused = np.zeros(n)
+    norm_sq = _sum_of_squares(rows[order[0]])
     for j in range(k):
-        x = rows[order[j]]
-        norm = 0.0
-        for t in range(j, n):
-            norm += x[t] * x[t]
-        norm = np.sqrt(norm)
-        alpha = -norm if x[j] >= 0.0 else norm
+        x = rows[order[j], j:]
+        norm = np.sqrt(norm_sq)
+        alpha = -norm if x[0] >= 0.0 else norm
         r[j, j] = alpha
+        if j + 1 == k:
+            break
         if norm == 0.0:
+            for c in range(j + 1, k):
+                r[j, c] = rows[order[c], j]
+            norm_sq = _sum_of_squares(rows[order[j + 1], j + 1:])
             continue
-        x[j] -= alpha
+        x[0] -= alpha
         vv = 0.0
-        for t in range(j, n):
-            vv += x[t] * x[t]
-        first = j + 1
-        while first + 3 < k:
-            _reflect_four(x, rows[order[first]], rows[order[first + 1]], rows[order[first + 2]],
-                          rows[order[first + 3]], j, vv)
-            for c in range(first, first + 4):
-                r[j, c] = rows[order[c]][j]
-            first += 4
-        for c in range(first, k):
-            col = rows[order[c]]
-            dot = 0.0
-            for t in range(j, n):
-                dot += x[t] * col[t]
-            factor = 2.0 * dot / vv
-            for t in range(j, n):
-                col[t] -= factor * x[t]
-            r[j, c] = col[j]
+        for first in range(j + 1, k, 4):
+            c0 = rows[order[first], j:]
+            c1 = rows[order[first + 1], j:] if first + 1 < k else unused[j:]
+            c2 = rows[order[first + 2], j:] if first + 2 < k else unused[j:]
+            c3 = rows[order[first + 3], j:] if first + 3 < k else unused[j:]
+            square, d0, d1, d2, d3 = _dots_four(x, c0, c1, c2, c3)
+            if first == j + 1:
+                vv = square
+                norm_sq = _reflect_and_square(c0, 2.0 * d0 / vv, x)
+            else:
+                _reflect(c0, 2.0 * d0 / vv, x)
+            _reflect(c1, 2.0 * d1 / vv, x)
+            _reflect(c2, 2.0 * d2 / vv, x)
+            _reflect(c3, 2.0 * d3 / vv, x)
+            for c in range(first, min(first + 4, k)):
+                r[j, c] = rows[order[c], j]
     return r
 
 
 @numba.njit(cache=True, nogil=True)
-def _reflect_four(x: np.ndarray, c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, c3: np.ndarray, j: int,
-                  vv: float) -> None:
-    """Columns c0..c3 (from sample j on) reflected in place by the Householder vector x, ||x||^2 = vv."""
-    d0 = d1 = d2 = d3 = 0.0
-    for t in range(j, x.size):
+def _sum_of_squares(x: np.ndarray) -> float:
+    total = 0.0
+    for t in range(x.size):
+        total += x[t] * x[t]
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def _dots_four(x: np.ndarray, c0: np.ndarray, c1: np.ndarray, c2: np.ndarray, c3: np.ndarray
+               ) -> tuple[float, float, float, float, float]:
+    """(x.x, x.c0, x.c1, x.c2, x.c3), each summed in sample order."""
+    xx = d0 = d1 = d2 = d3 = 0.0
+    for t in range(x.size):
         xt = x[t]
+        xx += xt * xt
         d0 += xt * c0[t]
         d1 += xt * c1[t]
         d2 += xt * c2[t]
         d3 += xt * c3[t]
-    f0, f1, f2, f3 = 2.0 * d0 / vv, 2.0 * d1 / vv, 2.0 * d2 / vv, 2.0 * d3 / vv
-    for t in range(j, x.size):
-        xt = x[t]
-        c0[t] -= f0 * xt
-        c1[t] -= f1 * xt
-        c2[t] -= f2 * xt
-        c3[t] -= f3 * xt
+    return xx, d0, d1, d2, d3
+
+
+@numba.njit(cache=True, nogil=True)
+def _reflect(column: np.ndarray, factor: float, x: np.ndarray) -> None:
+    """column -= factor x, in place (indices from 0, so that the loop vectorises)."""
+    for t in range(x.size):
+        column[t] -= factor * x[t]
+
+
+@numba.njit(cache=True, nogil=True)
+def _reflect_and_square(column: np.ndarray, factor: float, x: np.ndarray) -> float:
+    """column -= factor x, in place; returns the sum of squares of the reflected column[1:] (the next
+    step's norm, in sample order)."""
+    column[0] -= factor * x[0]
+    total = 0.0
+    for t in range(1, x.size):
+        reflected = column[t] - factor * x[t]
+        column[t] = reflected
+        total += reflected * reflected
+    return total
