@@ -85,6 +85,23 @@ def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states:
 
 
 @numba.njit(cache=True, nogil=True)
+def normalise_rows(rows: np.ndarray, tail_slope: float, a9: float, total: float, mean_index: float) -> None:
+    """In place, rows (S, dS/d(a1..a9), dS/d(a11)) -> (S, dS/d(a1..a8), dS/d(a9) - tail_slope dS/d(a11),
+    dS/d(a11) / a9) / total, then the last row plus mean_index times the first; each element through the
+    same operations in the same order as the NumPy expressions it replaces (one row per loop, so it
+    vectorises)."""
+    s, slope, tail = rows[0], rows[9], rows[10]
+    for t in range(s.size):
+        slope[t] = (slope[t] - tail[t] * tail_slope) / total
+    for i in range(9):
+        row = rows[i]
+        for t in range(row.size):
+            row[t] = row[t] / total
+    for t in range(s.size):
+        tail[t] = tail[t] / a9 / total + s[t] * mean_index
+
+
+@numba.njit(cache=True, nogil=True)
 def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
     """Upper-triangular R of the QR factorisation of the matrix whose columns are rows[order] (each row
     of `rows` one column of length N >= k); `rows` is overwritten. Single-threaded, so a tall-skinny QR costs

@@ -400,11 +400,19 @@ def _recounted(leader: CandidateResult, chain: Chain, ident: Record, valid: Vali
 
 
 class Pending:
-    """A job's result to come (Workers.submit): `result()` waits for it, or computes it the first time."""
+    """A job's result to come (Workers.submit): `result()` waits for it, or computes it the first time;
+    `begin()` starts the part of it that can start now (the `begin` given, once), without waiting."""
 
-    def __init__(self, compute: Callable[[], object]) -> None:
+    def __init__(self, compute: Callable[[], object], begin: Callable[[], object] | None = None) -> None:
         self._compute: Callable[[], object] | None = compute
+        self._begin = begin
         self._value: object = None
+
+    def begin(self) -> None:
+        """Start what can start now (nothing unless a `begin` was given)."""
+        if self._begin is not None:
+            self._begin, begin = None, self._begin
+            begin()
 
     def result(self) -> object:
         """The job's result (its exception raised here)."""

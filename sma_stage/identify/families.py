@@ -62,7 +62,8 @@ def check_families(names: Sequence[str]) -> tuple[str, ...]:
 def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: Workers,
                            held_out: HeldOut | None = None) -> Pending:
     """A held-current family's fit (two_wire or bouc_wen) on the identification record, begun in the pool's
-    processes; its result is the fit, or raises the InputError that says why the record cannot identify it.
+    processes; its result is the fit, or raises the InputError that says why the record cannot identify it (its
+    `begin()` hands the two-wire fit's last jobs, the polish, to the pool once its starts are done).
     held_out: the validation record the two-wire fit tells its closest starts apart on (fit_two_wire)."""
     if family == "bouc_wen":
         return pool.submit(fit_bouc_wen, ident.t, ident.input, ident.output, output_unit)
@@ -70,7 +71,7 @@ def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: W
         fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool)
     except InputError as error:
         return Pending(partial(_raise, error))
-    return Pending(partial(fitting.result, held_out))
+    return Pending(partial(fitting.result, held_out), begin=partial(fitting.polish, held_out))
 
 
 def _raise(error: Exception) -> None:

@@ -30,7 +30,12 @@ import numpy as np
 from scipy.optimize import OptimizeResult
 
 from sma_stage.errors import InputError
-from sma_stage.identify._sensitivity import SENSITIVITY_COLUMNS, householder_r, play_sensitivities
+from sma_stage.identify._sensitivity import (
+    SENSITIVITY_COLUMNS,
+    householder_r,
+    normalise_rows,
+    play_sensitivities,
+)
 from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.initial_guess import start_points
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
@@ -259,13 +264,10 @@ def _to_normalised_rows(rows: np.ndarray, x: np.ndarray, operators: int) -> None
     dŜ/d(a9) at fixed d, dŜ/dd) with Ŝ = S / sum_i w_i and d = a11*a9: the output is then s Ŝ, s the
     normalised scale (what a1, a4, a5, a8, a9 are multiplied by when the densities are made to sum 1)."""
     a9, decay = x[7], x[8]
-    rows[9] -= rows[10] * (decay / a9**2)
-    rows[10] /= a9
     indices = np.arange(operators)
     weights = np.exp(-decay * indices)
     total = weights.sum()
-    rows /= total
-    rows[10] += rows[0] * (indices @ weights / total)
+    normalise_rows(rows, float(decay / a9**2), float(a9), float(total), float(indices @ weights / total))
 
 
 def _scale_limit(a1: float, x: np.ndarray, operators: int, span: float) -> tuple[float, np.ndarray]:

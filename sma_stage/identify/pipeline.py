@@ -275,6 +275,8 @@ def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosi
     if "gpi" in families:
         rows.append(gpi)
         models.append(None)
+    for fitting in held.values():
+        fitting.begin()  # the two-wire polish, longer than the free-weight fit, queued first
     free_weights = None
     if "gpi_free" in families:
         starts = found.starts if found is not None else {}

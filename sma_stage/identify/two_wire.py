@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 from sma_stage.errors import InputError
 from sma_stage.identify._two_wire_sensitivity import rest_with_sensitivities, run_with_sensitivities
 from sma_stage.identify.cancel import check_cancelled
-from sma_stage.identify.diagnosis import COUNT_FIT_MARGIN, Workers
+from sma_stage.identify.diagnosis import COUNT_FIT_MARGIN, Pending, Workers
 from sma_stage.identify.fit import check_data, information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.identified import _record
@@ -118,29 +118,34 @@ class TwoWireFitting:
         rng = np.random.default_rng(seed)
         self.searching = [self.pool.submit(_solve, self.search, self.search.random_start(rng), SEARCH_EVALUATIONS,
                                            SEARCH_TOLERANCE) for _ in range(starts)]
+        self._polishing: list[Pending] | None = None
+        self._searched_evaluations, self._admitted = 0, []
+
+    def polish(self, held_out: HeldOut | None = None) -> None:
+        """Wait for the starts and hand the polish of the leaders to the pool (once; `result` does it when it was
+        not done): the POLISHED best fits, or with held_out the best fit and the POLISHED other starts within
+        START_FIT_MARGIN of it that predict held_out best."""
+        if self._polishing is not None:
+            return
+        searched = sorted((pending.result() for pending in self.searching), key=lambda found: found.cost)
+        self._searched_evaluations = sum(found.nfev for found in searched)
+        self._admitted = _admitted(searched) if held_out is not None else []
+        leaders = searched[:POLISHED]
+        if held_out is not None:
+            leaders = searched[:1] + sorted(self._admitted[1:], key=_held_out_error(held_out, self.search))[:POLISHED]
+        self._polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
+                           for found in leaders]
 
     def result(self, held_out: HeldOut | None = None) -> TwoWireFit:
-        """The fitted model: waits for the starts, then polishes the POLISHED best fits (on more samples when the
-        search ran on a thinned copy) and keeps the best. With held_out: the best fit and the POLISHED other starts
-        within START_FIT_MARGIN of it that predict held_out best are polished, and of those still within the
-        margin, the one that predicts it best is kept."""
-        searched = sorted((pending.result() for pending in self.searching), key=lambda found: found.cost)
-        evaluations = sum(found.nfev for found in searched)
-        admitted = _admitted(searched) if held_out is not None else []
-        leaders = searched[:POLISHED]
-
-        def held_out_error(problem: _Problem) -> Callable[[object], float]:
-            return lambda found: held_out.rms_pct(TwoWireModel(problem.parameters(found.x)))
-
-        if held_out is not None:
-            leaders = searched[:1] + sorted(admitted[1:], key=held_out_error(self.search))[:POLISHED]
-        polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
-                     for found in leaders]
+        """The fitted model: the polished leaders (`polish`) and the best of them kept; with held_out, of those
+        still within START_FIT_MARGIN of the best fit, the one that predicts held_out best."""
+        self.polish(held_out)
+        polishing, evaluations, admitted = self._polishing, self._searched_evaluations, self._admitted
         leaders = sorted((pending.result() for pending in polishing), key=lambda found: found.cost)
         evaluations += sum(found.nfev for found in leaders)
         best = leaders[0]
         if held_out is not None:
-            best = min(_admitted(leaders), key=held_out_error(self.problem))
+            best = min(_admitted(leaders), key=_held_out_error(held_out, self.problem))
         problem, t, u, y = self.problem, self.t, self.u, self.y
         model = TwoWireModel(problem.parameters(best.x), self.output_unit)
         predicted, end = model.run(t, u)
@@ -151,6 +156,11 @@ class TwoWireFitting:
         return TwoWireFit(model, predicted, error_metrics(y, predicted), cost,
                           information_criterion(cost, t.size, count), evaluations,
                           time.perf_counter() - self.started, count, len(admitted))
+
+
+def _held_out_error(held_out: HeldOut, problem: _Problem) -> Callable[[object], float]:
+    """A least-squares result's RMS error on held_out [% of its span], as the model `problem` makes of it."""
+    return lambda found: held_out.rms_pct(TwoWireModel(problem.parameters(found.x)))
 
 
 def _admitted(ranked: list) -> list:
