@@ -30,7 +30,7 @@ def play_sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states:
     theta holds a1..a11; states are the operator states before the first sample, updated in place. The
     sums are kept in scalars and no array is handed to a helper inside the loop over samples, so that they
     stay in registers (an array there cost two reference counts per call, a sum kept in an array a store
-    and a load per operator: 1.3-1.5 times the time, bench/bench_fit.py's kernel table).
+    and a load per operator: 1.3-1.5 times the time: bench/bench_kernels.py).
     """
     a9, a11 = theta[8], theta[10]
     low = np.empty(v.size)
@@ -107,7 +107,7 @@ def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
     about 2 N k^2 flops whatever the BLAS threading does. Each reflection's dot products are taken four
     columns per pass over the samples (the sums are sequential, so their latency sets the pace) and its
     updates one column per pass (which vectorises); every sum runs in the order of one column at a time,
-    so R is the same to the bit (bench/bench_fit.py's QR table)."""
+    so R is the same to the bit (bench/bench_kernels.py)."""
     k = order.size
     n = rows.shape[1]
     r = np.zeros((k, k))
