@@ -270,6 +270,32 @@ def test_a_run_stops_where_its_error_stalls_and_keeps_the_point_it_reached(monke
     assert stalled.cost < 0.5 * np.sum(problem.residuals(start) ** 2)
 
 
+def test_a_start_whose_run_meets_values_that_are_not_finite_is_passed_over(monkeypatch):
+    """scipy refuses a Jacobian that overflowed (ValueError): that run is dropped and the fit made from the others;
+    when every run fails the fit is refused in one line (the family's row says why) instead of raising scipy's
+    error through the identification."""
+    import sma_stage.identify.two_wire as two_wire
+
+    t, u = excitation(600)
+    y = example_model().predict(t, u)
+    solve, runs = two_wire._Problem.solve, []
+
+    def every_other_fails(problem, start, evaluations, tolerance=1e-8):
+        runs.append(evaluations)
+        if len(runs) % 2:
+            raise ValueError("array must not contain infs or NaNs")
+        return solve(problem, start, evaluations, tolerance)
+
+    monkeypatch.setattr(two_wire._Problem, "solve", every_other_fails)
+    found = fit_two_wire(t, u, y, starts=4)
+    assert len(runs) == 4 + 2  # four starts searched, two of them failing; the two leaders' polishes, one failing
+    assert found.evaluations > 0 and np.all(np.isfinite(found.model.predict(t, u)))
+    assert np.isfinite(found.errors.rms_pct) and np.isfinite(found.bic)
+    monkeypatch.setattr(two_wire._Problem, "solve", lambda *args: (_ for _ in ()).throw(ValueError("inf")))
+    with pytest.raises(InputError, match="the two-wire fit failed: every start's search met values that are not"):
+        fit_two_wire(t, u, y, starts=4)
+
+
 def test_a_record_heating_one_wire_only_is_refused():
     t = np.arange(0.0, 200.0, 0.2)
     u = 4.0 * np.abs(np.sin(t / 20.0))

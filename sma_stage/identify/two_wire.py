@@ -127,7 +127,7 @@ class TwoWireFitting:
         START_FIT_MARGIN of it that predict held_out best."""
         if self._polishing is not None:
             return
-        searched = sorted((pending.result() for pending in self.searching), key=lambda found: found.cost)
+        searched = _finished(self.searching, "start's search")
         self._searched_evaluations = sum(found.nfev for found in searched)
         self._admitted = _admitted(searched) if held_out is not None else []
         leaders = searched[:POLISHED]
@@ -141,7 +141,7 @@ class TwoWireFitting:
         still within START_FIT_MARGIN of the best fit, the one that predicts held_out best."""
         self.polish(held_out)
         polishing, evaluations, admitted = self._polishing, self._searched_evaluations, self._admitted
-        leaders = sorted((pending.result() for pending in polishing), key=lambda found: found.cost)
+        leaders = _finished(polishing, "leader's polish")
         evaluations += sum(found.nfev for found in leaders)
         best = leaders[0]
         if held_out is not None:
@@ -168,9 +168,22 @@ def _admitted(ranked: list) -> list:
     return [found for found in ranked if found.cost <= ranked[0].cost * (1.0 + START_FIT_MARGIN) ** 2]
 
 
-def _solve(problem: _Problem, start: np.ndarray, evaluations: int, tolerance: float) -> object:
-    """One least-squares run of the problem from a start (a job of the pool's processes)."""
-    return problem.solve(start, evaluations, tolerance)
+def _solve(problem: _Problem, start: np.ndarray, evaluations: int, tolerance: float) -> object | None:
+    """One least-squares run of the problem from a start (a job of the pool's processes); None when the run met
+    values that are not finite (a start whose model overflows: scipy refuses the Jacobian)."""
+    try:
+        return problem.solve(start, evaluations, tolerance)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+
+
+def _finished(pending: list[Pending], what: str) -> list:
+    """The least-squares results of the runs that finished, ranked by cost; InputError when none did."""
+    found = sorted((result for result in (job.result() for job in pending) if result is not None),
+                   key=lambda result: result.cost)
+    if not found:
+        raise InputError(f"the two-wire fit failed: every {what} met values that are not finite")
+    return found
 
 
 SHAPES = ("per_wire", "shared")  # each wire its own transformation shape, or one shape for both
@@ -209,6 +222,8 @@ class _Problem:
         self.reference = float(np.max(np.abs(u)))
         self.span = float(np.ptp(y))
         self.tie = _tie(wire_operators, output_operators, shapes)
+        held = SCALARS.index("heating_reference_a")
+        self._fitted = np.array([c for c in range(self.tie.shape[0] + 1) if c != held])  # all but the reference
         first = self.tie.argmax(axis=0)  # each free parameter's first place in the full vector
         low, high = self._bounds()
         self.low, self.high = low[first], high[first]
@@ -257,8 +272,7 @@ class _Problem:
         state, dstate = rest_with_sensitivities(p, self.n, self.m)
         out, dout = np.empty(self.t.size), np.empty((self.t.size, p.size))
         run_with_sensitivities(self.t, self.u, p, self.n, self.m, state, dstate, out, dout)
-        fitted = np.delete(dout, SCALARS.index("heating_reference_a"), axis=1)
-        return fitted @ self.tie / self.span
+        return dout[:, self._fitted] @ self.tie / self.span
 
     def solve(self, start: np.ndarray, evaluations: int, tolerance: float = 1e-8) -> object:
         """scipy's least_squares from start, stopped after `evaluations`, when the cost and the step change by
