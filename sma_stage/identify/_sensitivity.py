@@ -111,7 +111,7 @@ def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
     k = order.size
     n = rows.shape[1]
     r = np.zeros((k, k))
-    unused = np.zeros(n)
+    unused = np.zeros(n)  # stands in for the columns missing from the last group of four (stays zero)
     norm_sq = _sum_of_squares(rows[order[0]])
     for j in range(k):
         x = rows[order[j], j:]
