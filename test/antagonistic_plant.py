@@ -241,6 +241,16 @@ def records(stage: Stage, seed: int = 0, duration_s: float = 1000.0) -> dict[str
     return found
 
 
+def _gpi_alone(report: dict) -> dict:
+    """The report's one model as a families row, when the GPI family alone was fitted (no families table then)."""
+    diagnosis = report.get("diagnosis") or {}
+    effects = " + ".join(diagnosis.get("effects") or []) or "no effect"
+    validation = (diagnosis.get("after") or {}).get("validation") or report["validation"]
+    operators = (diagnosis.get("operators") or {}).get("chosen", "?")
+    return {"model": f"GPI, {operators} operators, {effects}", "identification": None, "validation": validation,
+            "chosen": True}
+
+
 def main() -> None:
     import argparse
     import sys
@@ -318,13 +328,14 @@ def main() -> None:
             chosen = load_any_model_file(Path(folder) / "out" / "model.yaml").without_state()
             third = error_metrics(y_third, chosen.predict(t_third, u_third))
         span = 1e3 * float(np.ptp(made["identification"][2]))
-        for row in report["families"]:
+        for row in report.get("families") or [_gpi_alone(report)]:
             valid = row["validation"]
             if valid is None:
                 print(f"| {name} | {span:.3f} | {row['model']}: not fitted ({row['not_fitted']}) | | | | |", flush=True)
                 continue
             third_cell = f"{third.rms_pct:.2f} / {third.max_pct:.1f}" if row["chosen"] else ""
-            print(f"| {name} | {span:.3f} | {row['model']} | {row['identification']['rms_pct']:.2f} | "
+            identification = f"{row['identification']['rms_pct']:.2f}" if row["identification"] else "-"
+            print(f"| {name} | {span:.3f} | {row['model']} | {identification} | "
                   f"{valid['rms_pct']:.2f} | {valid['max_pct']:.1f} | {'chosen' if row['chosen'] else ''} | "
                   f"{third_cell} |", flush=True)
         print(f"| {name} | | (diagnose, families {args.families}) | | | | {seconds:.0f} s | |", flush=True)
