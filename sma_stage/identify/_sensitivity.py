@@ -111,7 +111,7 @@ def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
     k = order.size
     n = rows.shape[1]
     r = np.zeros((k, k))
-    unused = np.zeros(n)  # stands in for the columns missing from the last group of four (stays zero)
+    unused = np.zeros(n)  # stands in, in the dot products, for the columns missing from the last group of four
     norm_sq = _sum_of_squares(rows[order[0]])
     for j in range(k):
         x = rows[order[j], j:]
@@ -138,9 +138,12 @@ def householder_r(rows: np.ndarray, order: np.ndarray) -> np.ndarray:
                 norm_sq = _reflect_and_square(c0, 2.0 * d0 / vv, x)
             else:
                 _reflect(c0, 2.0 * d0 / vv, x)
-            _reflect(c1, 2.0 * d1 / vv, x)
-            _reflect(c2, 2.0 * d2 / vv, x)
-            _reflect(c3, 2.0 * d3 / vv, x)
+            if first + 1 < k:
+                _reflect(c1, 2.0 * d1 / vv, x)
+            if first + 2 < k:
+                _reflect(c2, 2.0 * d2 / vv, x)
+            if first + 3 < k:
+                _reflect(c3, 2.0 * d3 / vv, x)
             for c in range(first, min(first + 4, k)):
                 r[j, c] = rows[order[c], j]
     return r

@@ -222,8 +222,8 @@ class _Problem:
         self.reference = float(np.max(np.abs(u)))
         self.span = float(np.ptp(y))
         self.tie = _tie(wire_operators, output_operators, shapes)
-        held = SCALARS.index("heating_reference_a")
-        self._fitted = np.array([c for c in range(self.tie.shape[0] + 1) if c != held])  # all but the reference
+        reference_index = SCALARS.index("heating_reference_a")  # held at self.reference, not fitted
+        self._fitted = np.array([c for c in range(self.tie.shape[0] + 1) if c != reference_index])
         first = self.tie.argmax(axis=0)  # each free parameter's first place in the full vector
         low, high = self._bounds()
         self.low, self.high = low[first], high[first]
