@@ -627,15 +627,16 @@ def hold_on_a_fast_wall_clock_stage(ros: Ros, compensator_time_scale: float) -> 
 def test_a_fast_wall_clock_stage_is_held_without_overshoot_or_limit_cycle(ros):
     """Without use_sim_time at time_scale 20, the loop counted wall seconds while the model counts the stage's:
     200 um overshot to 504 um, then cycled between 171 and 225 um. With the compensator's time_scale the loop
-    counts stage seconds: at most 20 % overshoot, and the last 60 s of stage time within 10 um of the setpoint
+    counts stage seconds: at most 20 % overshoot, and the last 60 s of stage time within 3 um of the setpoint
     (chosen by their stamps, not as the last 300 messages: the test holds whatever rate the stage kept).
-    It failed once in a fresh-clone CI run (196.4 to 211.7 um: still approaching); beside two CPU-bound
-    processes the stage kept its 100 Hz and the test passed 4 runs of 4."""
+    At this loop's 0.4 s of stage time the held setpoint used to limit-cycle (197-203 um, the current swinging
+    1.1-3.5 A; 197.2-213.0 um in one fresh-clone CI run); with a held setpoint's reversals kept out of the
+    inverse (sma_stage.control.compensator) 20 runs, 10 beside two CPU-bound processes, held 199.3-201.0 um."""
     positions, stamps_s = hold_on_a_fast_wall_clock_stage(ros, 20.0)
     settled = positions[stamps_s >= stamps_s[-1] - 3.0]  # the last 3 s of wall time
     assert settled.size >= 100, f"{settled.size} positions in the last 3 s"
     assert positions.max() < 2.4e-4, f"peak {positions.max() * 1e6:.1f} um"
-    assert np.max(np.abs(settled - 2e-4)) < 1e-5, f"{settled.min() * 1e6:.1f} to {settled.max() * 1e6:.1f} um"
+    assert np.max(np.abs(settled - 2e-4)) < 3e-6, f"{settled.min() * 1e6:.1f} to {settled.max() * 1e6:.1f} um"
 
 
 def test_compensator_takes_a_whole_model_through_its_parameter_service(ros):

@@ -37,6 +37,16 @@ The defaults (3 in the loop, 10 and 1 in feedforward, 1 A/s) come from scans wit
 (their tables: bench/README.md at commit b315809): in the loop a limit of 10 made the stage limit-cycle around a held setpoint (9-14 um RMS
 against 0.8-1.4 um at 3), and 5 did at a rate limit of 0.5 A/s.
 
+While the setpoint holds (the same value as in the previous call) the loop's target may still move on with
+the error, but it does not reverse through the inverse: the inverse keeps the target it had, and the part of
+the loop's target that reverses goes through a linear path instead (metres to amperes at the model's mean
+slope, its span over twice the current limit, with the same lead on a first-order lag of the model's tau).
+Why: the exact inverse answers a reversal of its target, however small, with a jump across the model's
+loop, and where the stage's minor loops are narrower than the model's that jump moves the stage further
+than the error that caused it: a held setpoint limit-cycled (the simulator with the shipped model, 0.4 s
+control period: 2-5 um peak to peak, the current swinging 1.2-3.5 A at the rate limit). The linear path has
+no jump; a change of the setpoint, or a target beyond the model's reach, frees the inverse again.
+
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
 (sma_stage.model.effects):
 - thermal_lag: its state is advanced with the command sent, held over each step (`lag_step` with equal
@@ -66,7 +76,7 @@ from __future__ import annotations
 import bisect
 import math
 
-from sma_stage.control.drives import AnyModel, Drive, drive_for, model_tau_s
+from sma_stage.control.drives import AnyModel, Drive, drive_for, model_tau_s, reach_span_m
 from sma_stage.errors import InputError, finite_number
 from sma_stage.model import IdentifiedModel
 from sma_stage.model.bouc_wen import BoucWenModel
@@ -246,6 +256,16 @@ class Compensator:
         self.command_a = self.drive.initial_current()
         self._hold_s = 0.0
         self._setpoint = _SetpointMotion()
+        self._amps_per_m = 2.0 * self._limit / reach_span_m(self.drive)
+        self._release_inverse()
+
+    def _release_inverse(self) -> None:
+        """The inverse free to follow the loop's target both ways; the linear path at rest."""
+        self._previous_setpoint: float | None = None
+        self._inverse_target: float | None = None
+        self._inverse_direction = 0
+        self._linear_a = 0.0  # the linear path's share of the last command [A]
+        self._linear_lag_a = 0.0  # that share through a first-order lag of the model's tau [A]
 
     def continue_from(self, previous: Compensator) -> None:
         """Take over the loop of another core (the one this replaces, with another model): the last command, so
@@ -253,7 +273,8 @@ class Compensator:
         integral, less what this model predicts beyond the other at their states now. The integral holds what
         the other model got wrong: a model fitted since (after a load step) has most of it in its prediction,
         and carrying the integral whole would count it twice, an error the loop then takes its integral time to
-        undo. The model's states stay this core's own (from its carried state)."""
+        undo. A held setpoint's inverse target (shifted the same) and the linear path carry over. The model's
+        states stay this core's own (from its carried state)."""
         low, high = self.drive.target_bounds
         reach = high - low
         shift = self.drive.predicted_m - previous.drive.predicted_m if previous._looped else 0.0
@@ -265,6 +286,10 @@ class Compensator:
         self.target_m = previous.target_m + shift
         self._hold_s = previous._hold_s
         self._setpoint = previous._setpoint
+        self._previous_setpoint = previous._previous_setpoint
+        self._inverse_target = None if previous._inverse_target is None else previous._inverse_target + shift
+        self._inverse_direction = previous._inverse_direction
+        self._linear_a, self._linear_lag_a = previous._linear_a, previous._linear_lag_a
 
     @property
     def tau_s(self) -> float:
@@ -291,10 +316,46 @@ class Compensator:
         limit = self._lead_limit
         if measured_m is None:
             limit = self._feedforward_lead_limit if moving else self._feedforward_step_lead_limit
-        self.drive.advance(self.command_a, dt)
-        current, self.saturated = self.drive.current_for(self.target_m, self._hold_s, limit)
-        self.command_a = self._rate_limited(current, dt)
+        held = measured_m is not None and setpoint == self._previous_setpoint
+        self._previous_setpoint = setpoint
+        inverse_target, reversal_m = self._split_reversal(self.target_m, held)
+        self.drive.advance(self.command_a - self._linear_a, dt)
+        current, self.saturated = self.drive.current_for(inverse_target, self._hold_s, limit)
+        if self.saturated or self.drive.out_of_reach:
+            self._inverse_direction = 0
+        linear = self._linear_path(reversal_m * self._amps_per_m, dt)
+        total = current + linear
+        bounded = min(self._limit, max(-self._limit, total))
+        if bounded != total:
+            self.saturated = 1 if total > bounded else -1
+        self._linear_a = bounded - min(self._limit, max(-self._limit, current))
+        self.command_a = self._rate_limited(bounded, dt)
         return self.command_a
+
+    def _split_reversal(self, target_m: float, held: bool) -> tuple[float, float]:
+        """(the target [m] the inverse gets, the part [m] of target_m that goes through the linear path): on a
+        held setpoint a reversal of the loop's target stays out of the inverse (see the module's docstring)."""
+        previous = self._inverse_target
+        inverse_target, reversal = target_m, 0.0
+        if held and previous is not None and self._inverse_direction * (target_m - previous) < 0.0:
+            inverse_target, reversal = previous, target_m - previous
+        if previous is not None and inverse_target != previous:
+            self._inverse_direction = 1 if inverse_target > previous else -1
+        self._inverse_target = inverse_target
+        return inverse_target, reversal
+
+    def _linear_path(self, wanted_a: float, dt: float) -> float:
+        """The linear path's current [A] for wanted_a [A]: through the lead on a first-order lag of the model's
+        tau (gain at most lead_limit), whose state follows the path's share of what was sent."""
+        tau = self.drive.tau_s
+        if tau <= 0.0:
+            return wanted_a
+        if dt > 0.0:
+            self._linear_lag_a = self._linear_a + (self._linear_lag_a - self._linear_a) * math.exp(-dt / tau)
+        if self._hold_s <= 0.0:
+            return wanted_a
+        gain = min(self._lead_limit, 1.0 / -math.expm1(-self._hold_s / tau))
+        return self._linear_lag_a + gain * (wanted_a - self._linear_lag_a)
 
     def _bounded(self, position_m: float) -> float:
         """A position [m] within the inverse's target bounds (the model's reach and ten spans beyond): a finite
@@ -325,6 +386,7 @@ class Compensator:
         self.integral_m = 0.0
         self._played_m = None
         self._commanded = False
+        self._release_inverse()
 
     def _pi_target(self, setpoint: float, measured: float, dt: float) -> float:
         error = setpoint - measured

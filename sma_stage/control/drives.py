@@ -232,6 +232,13 @@ class StreamDrive:
                 f"{params.output_operators} at the output)")
 
 
+def reach_span_m(drive: Drive) -> float:
+    """The span [m] of the outputs the drive's model reaches within the current limit (its target bounds are
+    that reach and TARGET_MARGIN_SPANS spans beyond it each way)."""
+    low, high = drive.target_bounds
+    return (high - low) / (1.0 + 2.0 * TARGET_MARGIN_SPANS)
+
+
 def lead_horizon_s(tau_s: float, lead_limit: float) -> float:
     """The hold [s] over which a first-order lag of tau_s [s] driven with a lead of gain lead_limit reaches its
     target: -tau ln(1 - 1/g); SETTLED_TAUS time constants for a gain of 1 (no lead)."""
