@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.context import Context
@@ -37,6 +36,7 @@ from rclpy.task import Future
 
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import cancellable
+from sma_stage.nodes._rclpy_internals import RCLError, parameter_overrides
 
 # Commands: reliable, depth 10. Stage state: published reliable (a best-effort subscriber is compatible
 # with it), subscribed best effort (compatible with any publisher: the simulator, a hardware bridge, a
@@ -93,7 +93,7 @@ def declare_all(node: Node, params: Sequence[Param]) -> dict[str, object]:
     An integer given for a double parameter (`-p time_scale:=50`, `ros2 param set ... max_current 5`) is taken
     as that double, then range-checked like any other value."""
     doubles = {param.name for param in params if _parameter_type(param.default) == ParameterType.PARAMETER_DOUBLE}
-    overrides = node._parameter_overrides  # rclpy keeps them here; no public way to read them before declaring
+    overrides = parameter_overrides(node)
     for name in doubles & set(overrides):
         overrides[name] = _as_double(overrides[name])
     node.add_pre_set_parameters_callback(
