@@ -354,7 +354,8 @@ class Compensator:
             self._linear_lag_a = self._linear_a + (self._linear_lag_a - self._linear_a) * math.exp(-dt / tau)
         if self._hold_s <= 0.0:
             return wanted_a
-        gain = min(self._lead_limit, 1.0 / -math.expm1(-self._hold_s / tau))
+        reached = -math.expm1(-self._hold_s / tau)  # the lag's share of a step reached over the hold
+        gain = self._lead_limit if reached * self._lead_limit <= 1.0 else 1.0 / reached
         return self._linear_lag_a + gain * (wanted_a - self._linear_lag_a)
 
     def _bounded(self, position_m: float) -> float:
