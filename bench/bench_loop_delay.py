@@ -31,10 +31,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_tracking import CONTROL_STEP_S, PLANT_STEP_S, Identified, Mode, Model, record, track  # noqa: E402
 
 from sma_stage.control.compensator import imc_gains  # noqa: E402
-from sma_stage.control.drives import AnyModel  # noqa: E402
 from sma_stage.identify.pipeline import identify_recording  # noqa: E402
 from sma_stage.identify.two_wire import HeldOut, fit_two_wire  # noqa: E402
-from sma_stage.model.identified import load_any_model_file  # noqa: E402
+from sma_stage.model.kinds import (
+    AnyModel,  # noqa: E402
+    load_any_model_file,  # noqa: E402
+)
 from sma_stage.signals import IDENTIFICATION_DURATION_S, paper_identification_signal, paper_validation_signal  # noqa: E402
 
 

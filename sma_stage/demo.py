@@ -24,7 +24,7 @@ from sma_stage.errors import InputError
 from sma_stage.identify.families import FAMILIES
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.model import forward, inverse, load_model_file
-from sma_stage.model.identified import any_model_from_yaml_text
+from sma_stage.model.kinds import any_model_from_yaml_text
 from sma_stage.nodes.launch import CONFIG_DIR, DEFAULT_MODEL_FILE
 from sma_stage.plots import Panel, save_panels
 from sma_stage.signals import paper_validation_signal
@@ -465,7 +465,7 @@ def identification_loop(bag: Path, model_file: Path, duration_s: float, input_to
     # in place of 1.60-1.62 % (three demos each, 2026-11-26; the cause was not traced).
     from sma_stage.commands.plot import recording_panels
     from sma_stage.io import read_bag
-    from sma_stage.model.identified import load_any_model_file
+    from sma_stage.model.kinds import load_any_model_file
 
     series = read_bag(bag, input_topic=input_topic)
     start = float(series.t[np.argmax(series.input != 0.0)])

@@ -300,7 +300,7 @@ def main() -> None:
         return
     from sma_stage.cli import main as gpi_tool
     from sma_stage.identify.metrics import error_metrics
-    from sma_stage.model.identified import load_any_model_file
+    from sma_stage.model.kinds import load_any_model_file
 
     print("| variant | span [mm] | model | identification RMS % | validation RMS % | validation max % | | third record "
           "RMS / max % |")

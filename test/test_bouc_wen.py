@@ -8,7 +8,7 @@ from sma_stage.control import Compensator
 from sma_stage.errors import InputError
 from sma_stage.identify.bouc_wen import fit_bouc_wen
 from sma_stage.model.bouc_wen import BoucWenModel, BoucWenParameters
-from sma_stage.model.identified import load_any_model_file
+from sma_stage.model.kinds import load_any_model_file
 from sma_stage.signals import paper_identification_signal, paper_validation_signal
 
 VALUES = {"tau_s": 6.0, "k_x": 2e-5, "k_w": 1.5e-4, "offset": 3e-5, "beta": 0.6, "gamma": 0.2, "n": 1.5}

@@ -15,7 +15,7 @@ from sma_stage.control.thermal import ThermalState
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
 from sma_stage.model.effects import EffectState, lag_step
-from sma_stage.model.identified import load_any_model_file
+from sma_stage.model.kinds import load_any_model_file
 from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 from sma_stage.plant import StageSimulator
 

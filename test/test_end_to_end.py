@@ -22,9 +22,12 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
-from sma_stage.control.drives import AnyModel  # noqa: E402
 from sma_stage.identify.effects import EFFECT_NAMES  # noqa: E402
-from sma_stage.model.identified import any_model_from_yaml_text, load_any_model_file  # noqa: E402
+from sma_stage.model.kinds import (  # noqa: E402
+    AnyModel,  # noqa: E402
+    any_model_from_yaml_text,
+    load_any_model_file,
+)
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, find_executable, wait_for  # noqa: E402
 

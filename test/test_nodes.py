@@ -36,7 +36,7 @@ from sma_stage.errors import InputError  # noqa: E402
 from sma_stage.identify.effects import EFFECT_NAMES  # noqa: E402
 from sma_stage.io import read_bag, read_csv  # noqa: E402
 from sma_stage.model import Effect, GPIInverseStream, GPIParameters, IdentifiedModel, load_model_file  # noqa: E402
-from sma_stage.model.identified import load_any_model_file  # noqa: E402
+from sma_stage.model.kinds import load_any_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.compensator_node import CompensatorNode  # noqa: E402
 from sma_stage.nodes.identification_node import IdentificationNode  # noqa: E402
@@ -655,7 +655,7 @@ def test_compensator_takes_a_whole_model_through_its_parameter_service(ros):
 def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
     path = tmp_path / "model.yaml"
     first = DEFAULT_PARAMS.replace(a10=0.25)
-    first.to_yaml(path, operators=12)
+    IdentifiedModel(first, 12).save(path)
     compensator = compensator_node(ros, model_file=str(path), rate_hz=2.0)
     assert compensator.core.drive.inverse.params == first and compensator.model.operators == 12
     probe = CompensatorProbe(ros, compensator)
@@ -665,7 +665,7 @@ def test_compensator_reload_keeps_the_old_model_on_a_bad_file(ros, tmp_path):
         assert not answer.success and str(path) in answer.message and "\n" not in answer.message
         assert compensator.core.drive.inverse.params == first
     second = DEFAULT_PARAMS.replace(a2=0.7)
-    second.to_yaml(path, operators=10)
+    IdentifiedModel(second, 10).save(path)
     answer = ros.call(probe.node, Trigger, "compensator/reload")
     assert answer.success, answer.message
     assert compensator.core.drive.inverse.params == second

@@ -145,7 +145,7 @@ def test_the_model_file_round_trips(tmp_path):
     _, state = model.run(t, u)
     carried = TwoWireModel(model.parameters, "m", state, {"note": "test"})
     carried.save(tmp_path / "two_wire.yaml")
-    from sma_stage.model.identified import load_any_model_file
+    from sma_stage.model.kinds import load_any_model_file
 
     loaded = load_any_model_file(tmp_path / "two_wire.yaml")
     assert isinstance(loaded, TwoWireModel) and loaded.metadata == {"note": "test"}
@@ -168,7 +168,7 @@ def test_the_model_file_round_trips(tmp_path):
 def test_a_bad_model_file_is_refused_in_one_line(tmp_path, change, message):
     import yaml
 
-    from sma_stage.model.identified import load_any_model_file
+    from sma_stage.model.kinds import load_any_model_file
 
     document = example_model().to_dict()
     change(document)
@@ -184,7 +184,7 @@ def test_a_model_file_written_before_the_resistance_drop_reads_as_one_without_it
     independent of the transformation: they load with the parameter 0 and predict as they did."""
     import yaml
 
-    from sma_stage.model.identified import load_any_model_file
+    from sma_stage.model.kinds import load_any_model_file
 
     document = example_model().to_dict()
     document["parameters"].pop("resistance_drop")
@@ -198,7 +198,8 @@ def test_a_model_file_written_before_the_resistance_drop_reads_as_one_without_it
 
 
 def test_the_gpi_model_file_still_reads_as_a_gpi(tmp_path):
-    from sma_stage.model.identified import IdentifiedModel, load_any_model_file, load_model_file
+    from sma_stage.model.identified import IdentifiedModel, load_model_file
+    from sma_stage.model.kinds import load_any_model_file
     from sma_stage.model.parameters import GPIParameters
 
     gpi = IdentifiedModel(GPIParameters(*np.linspace(0.1, 1.1, 11)), 5)

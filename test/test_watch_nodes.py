@@ -18,7 +18,7 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, String  # noqa: E402
 from test_end_to_end import TEST_PRIORITY, refit_after_excitation  # noqa: E402
 
-from sma_stage.model.identified import any_model_from_yaml_text  # noqa: E402
+from sma_stage.model.kinds import any_model_from_yaml_text  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, wait_for  # noqa: E402
 

@@ -12,7 +12,7 @@ from sma_stage.commands.identify import read_data
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.io.run_folder import RunFolder
 from sma_stage.io.series import Series
-from sma_stage.model.identified import load_any_model_file
+from sma_stage.model.kinds import load_any_model_file
 from sma_stage.plots import Panel, save_panels
 
 MICROMETRES_PER_M = 1e6

@@ -76,11 +76,9 @@ from __future__ import annotations
 import bisect
 import math
 
-from sma_stage.control.drives import AnyModel, Drive, drive_for, model_tau_s, reach_span_m
+from sma_stage.control.drives import Drive, drive_for, model_tau_s, reach_span_m
 from sma_stage.errors import InputError, finite_number
-from sma_stage.model import IdentifiedModel
-from sma_stage.model.bouc_wen import BoucWenModel
-from sma_stage.model.two_wire import TwoWireModel
+from sma_stage.model.kinds import AnyModel, StreamModel
 
 COMPENSATION = {
     "thermal_lag": "inverted: the lead brings the lag's state to the inverse's output over each step",
@@ -95,7 +93,7 @@ COMPENSATION = {
 
 def compensation_notes(model: AnyModel) -> dict[str, str]:
     """How the compensator treats each of the model's effects (effect kind -> one line)."""
-    if isinstance(model, (TwoWireModel, BoucWenModel)):
+    if isinstance(model, StreamModel):
         return {model.kind: "inverted exactly: the current that, held over the lead limit's horizon, brings the "
                             "model's output to the target through its heating lag"}
     return {kind: COMPENSATION[kind] for kind in model.effect_names}
@@ -231,7 +229,7 @@ class Compensator:
     def set_model(self, model: AnyModel, max_current_a: float | None = None, method: str | None = None) -> None:
         """Use another model (checked whole: InputError and nothing changed when it cannot be inverted);
         the integral and every state start again, from the model's carried state when it has one."""
-        if not isinstance(model, (IdentifiedModel, TwoWireModel, BoucWenModel)):
+        if not isinstance(model, AnyModel):
             raise InputError(f"model must be a GPI, a two-wire or a Bouc-Wen model, got {type(model).__name__}")
         if model.output_unit != "m":
             raise InputError(f"the model's output unit is '{model.output_unit}'; the setpoint is in m")

@@ -25,11 +25,9 @@ from sma_stage.model.bouc_wen import BoucWenModel
 from sma_stage.model.effects import Effect, EffectState, joule_heating
 from sma_stage.model.identified import ModelState
 from sma_stage.model.inverse import TARGET_MARGIN_SPANS
-from sma_stage.model.two_wire import TwoWireModel
+from sma_stage.model.kinds import AnyModel, StreamModel
 
 SETTLED_TAUS = 30.0  # a hold this many time constants long is a steady state (e^-30: 1e-13)
-AnyModel = IdentifiedModel | TwoWireModel | BoucWenModel
-StreamModel = TwoWireModel | BoucWenModel  # the families run one held current at a time (their `stream`)
 
 
 class Drive(Protocol):
@@ -73,14 +71,14 @@ def drive_for(model: object, max_current_a: float, method: str) -> Drive:
     """The drive of a model of any family (InputError when it cannot be inverted within +-max_current_a [A])."""
     if isinstance(model, IdentifiedModel):
         return GPIDrive(model, max_current_a, method)
-    if isinstance(model, (TwoWireModel, BoucWenModel)):
+    if isinstance(model, StreamModel):
         return StreamDrive(model, max_current_a, method)
     raise InputError(f"model must be a GPI, a two-wire or a Bouc-Wen model, got {type(model).__name__}")
 
 
 def model_tau_s(model: AnyModel) -> float:
     """The slowest thermal time constant of a model [s] (0: none): what the PI loop's tuning takes as the lag."""
-    if isinstance(model, (TwoWireModel, BoucWenModel)):
+    if isinstance(model, StreamModel):
         return model.tau_s
     return ThermalState(thermal_effect(model)).tau_s
 

@@ -17,7 +17,7 @@ from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.fit import check_data, information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.bouc_wen import BoucWenModel, BoucWenParameters
-from sma_stage.model.identified import _record
+from sma_stage.model.checks import checked_record
 
 SEARCH_SAMPLES = 2500
 STARTS = ((2.0, 0.3), (10.0, 0.3), (2.0, 1.5), (10.0, 1.5), (40.0, 0.8))  # (tau_s, beta)
@@ -71,7 +71,7 @@ def fit_bouc_wen(t: np.ndarray, u: np.ndarray, y: np.ndarray, output_unit: str =
     """The Bouc-Wen model that best predicts y [output unit] from u [A] at times t [s], from a stage at rest;
     InputError (one line) when the record cannot identify it."""
     started = time.perf_counter()
-    t, u = _record(t, u)
+    t, u = checked_record(t, u)
     u, y = check_data(u, y)
     thin = max(1, t.size // SEARCH_SAMPLES)
     search, problem = _Problem(t[::thin], u[::thin], y[::thin]), _Problem(t, u, y)

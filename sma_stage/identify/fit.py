@@ -39,7 +39,8 @@ from sma_stage.identify._sensitivity import (
 from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.initial_guess import start_points
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
-from sma_stage.model.forward import as_signal, forward, initial_states
+from sma_stage.model.checks import as_signal
+from sma_stage.model.forward import forward, initial_states
 from sma_stage.model.parameters import DEFAULT_OPERATORS, PARAMETER_NAMES, GPIParameters, check_operators
 
 MIN_SAMPLES = 20

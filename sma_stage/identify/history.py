@@ -11,10 +11,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.io.series import Series
+from sma_stage.model.kinds import AnyModel
 
 
 def started_from(model: AnyModel, t_s: np.ndarray, current_a: np.ndarray) -> AnyModel:

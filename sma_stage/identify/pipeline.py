@@ -11,7 +11,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sma_stage.control.compensator import compensation_notes
-from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.diagnosis import (
     WORKER_NICENESS,
@@ -36,6 +35,7 @@ from sma_stage.identify.report import fit_report
 from sma_stage.identify.two_wire import HeldOut
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
+from sma_stage.model.kinds import AnyModel
 
 MIN_HELD_OUT = 10
 FIT_SAMPLES = 20_000  # a longer record is fitted on a copy thinned to about this many samples (max_fit_samples)

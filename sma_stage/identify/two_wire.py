@@ -23,7 +23,7 @@ from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.diagnosis import COUNT_FIT_MARGIN, Pending, Workers
 from sma_stage.identify.fit import check_data, information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
-from sma_stage.model.identified import _record
+from sma_stage.model.checks import checked_record
 from sma_stage.model.two_wire import SCALARS, TwoWireModel, TwoWireParameters
 
 WIRE_OPERATORS = 4
@@ -98,7 +98,7 @@ class TwoWireFitting:
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
                  output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None) -> None:
         self.started = time.perf_counter()
-        t, u = _record(t, u)
+        t, u = checked_record(t, u)
         u, y = check_data(u, y)
         for name, count in (("wire_operators", wire_operators), ("output_operators", output_operators),
                             ("starts", starts)):

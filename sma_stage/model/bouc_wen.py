@@ -21,7 +21,8 @@ import numba
 import numpy as np
 
 from sma_stage.errors import InputError
-from sma_stage.model.held import HeldCurrentModel, HeldState, finite_value
+from sma_stage.model.checks import finite_value
+from sma_stage.model.held import HeldCurrentModel, HeldState
 
 KIND = "bouc_wen"
 NAMES = ("tau_s", "k_x", "k_w", "offset", "beta", "gamma", "n")

@@ -6,25 +6,8 @@ import numpy as np
 
 from sma_stage.errors import InputError
 from sma_stage.model import _kernels
+from sma_stage.model.checks import as_signal
 from sma_stage.model.parameters import DEFAULT_OPERATORS, GPIParameters, check_operators
-
-
-def as_signal(values: np.ndarray, name: str) -> np.ndarray:
-    """A 1-D float64 copy of values, refused with one line if empty, not 1-D or not finite."""
-    try:
-        array = np.array(values, dtype=float, copy=True)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be numeric") from None
-    if array.ndim == 0:
-        array = array.reshape(1)
-    if array.ndim != 1:
-        raise InputError(f"{name} must be one-dimensional, got shape {array.shape}")
-    if array.size == 0:
-        raise InputError(f"{name} is empty")
-    bad = np.flatnonzero(~np.isfinite(array))
-    if bad.size:
-        raise InputError(f"{name} has a non-finite value ({array[bad[0]]}) at index {bad[0]}")
-    return array
 
 
 def initial_states(params: GPIParameters, operators: int, initial: np.ndarray | None) -> np.ndarray:

@@ -4,7 +4,6 @@ record, and their model files."""
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, replace
 
@@ -14,7 +13,7 @@ import yaml
 from sma_stage.errors import InputError
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import plain_values
-from sma_stage.model.parameters import float_or_inf, shown_number
+from sma_stage.model.checks import checked_record, finite_value
 
 STATE_KEYS = ("time_s", "current_a", "values")
 
@@ -31,14 +30,6 @@ class HeldState:
     def to_dict(self) -> dict[str, object]:
         """Plain values for YAML."""
         return {"time_s": self.time_s, "current_a": self.current_a, "values": [float(v) for v in self.values]}
-
-
-def finite_value(value: object, name: str, family: str) -> float:
-    """value as a float; one InputError line naming the family's parameter unless it is a finite number."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(float_or_inf(value)):
-        raise InputError(f"{family} {name} must be a finite number, got {shown_number(value)}")
-    return float(value)
 
 
 def held_state_from_dict(entry: object, family: str) -> HeldState:
@@ -89,9 +80,7 @@ class HeldCurrentModel:
         """(output at each sample [output unit], the state at the last sample): from a stage long at rest (zero
         current up to the first sample), or from `state` (what an earlier record left: its current held until
         this record's first sample)."""
-        from sma_stage.model.identified import _record
-
-        t, u = _record(t, u)
+        t, u = checked_record(t, u)
         if state is None:
             values, held, first = self.rest_state(), 0.0, 0.0
         else:

@@ -14,7 +14,6 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -23,20 +22,15 @@ from sma_stage.errors import InputError
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import plain_values
 from sma_stage.io.safe_yaml import parse_yaml, read_text_file
+from sma_stage.model.checks import checked_record, float_or_inf, shown_number
 from sma_stage.model.effects import FREE_VALUES, START_KINDS, Effect, EffectState, rate_forward
-from sma_stage.model.forward import as_signal, forward_with_states
+from sma_stage.model.forward import forward_with_states
 from sma_stage.model.parameters import (
     DEFAULT_OPERATORS,
     MODEL_KIND,
     GPIParameters,
     check_operators,
-    float_or_inf,
-    shown_number,
 )
-
-if TYPE_CHECKING:
-    from sma_stage.model.bouc_wen import BoucWenModel
-    from sma_stage.model.two_wire import TwoWireModel
 
 SCHEMA_VERSION = 1
 TOP_KEYS = ("schema_version", "kind", "output_unit", "operators", "parameters", "effects", "state", "metadata")
@@ -140,7 +134,7 @@ class IdentifiedModel:
         """The state before a record (t [s], u [A]) that starts as `start` says (None: from rest)."""
         if start.kind == "rest":
             return None
-        t, u = _record(t, u)
+        t, u = checked_record(t, u)
         if start.kind == "free" and len(start.values) != len(self.free_start_names):
             raise InputError(f"a free start of this model takes {len(self.free_start_names)} values "
                              f"({', '.join(self.free_start_names)}), got {len(start.values)}")
@@ -159,7 +153,7 @@ class IdentifiedModel:
 
     def gpi_input(self, t: np.ndarray, u: np.ndarray, state: ModelState | None = None) -> np.ndarray:
         """What the GPI sees [A]: the current after every input effect, from rest or from state."""
-        t, u = _record(t, u)
+        t, u = checked_record(t, u)
         v = u
         for index, effect in enumerate(self.effects):
             if effect.role == "input":
@@ -180,7 +174,7 @@ class IdentifiedModel:
     def run(self, t: np.ndarray, u: np.ndarray, state: ModelState | None = None
             ) -> tuple[np.ndarray, ModelState]:
         """(output [output unit], the state at the record's last sample); see predict."""
-        t, u = _record(t, u)
+        t, u = checked_record(t, u)
         effect_states = list(state.effects) if state is not None else [None] * len(self.effects)
         ends: list[EffectState | None] = [None] * len(self.effects)
         v = u
@@ -262,41 +256,6 @@ def load_model_file(path: str | os.PathLike) -> IdentifiedModel:
         return IdentifiedModel.from_yaml_text(text)
     except InputError as error:
         raise InputError(f"model file {Path(path)}: {error}") from None
-
-
-def any_model_from_yaml_text(text: str) -> IdentifiedModel | TwoWireModel | BoucWenModel:
-    """A model of any family from YAML text, by its `kind` (gpi, the default, two_wire or bouc_wen)."""
-    from sma_stage.model.bouc_wen import KIND as BOUC_WEN
-    from sma_stage.model.bouc_wen import BoucWenModel
-    from sma_stage.model.two_wire import KIND as TWO_WIRE
-    from sma_stage.model.two_wire import TwoWireModel
-
-    document = parse_yaml(text)
-    kind = document.get("kind") if isinstance(document, dict) else None
-    if kind == TWO_WIRE:
-        return TwoWireModel.from_dict(document)
-    if kind == BOUC_WEN:
-        return BoucWenModel.from_dict(document)
-    return IdentifiedModel.from_dict(document)
-
-
-def load_any_model_file(path: str | os.PathLike) -> IdentifiedModel | TwoWireModel | BoucWenModel:
-    """A model file of any family, by its `kind` (gpi, the default, two_wire or bouc_wen); problems as
-    load_model_file."""
-    text = read_text_file(path, "model file")
-    try:
-        return any_model_from_yaml_text(text)
-    except InputError as error:
-        raise InputError(f"model file {Path(path)}: {error}") from None
-
-
-def _record(t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    t, u = as_signal(t, "time"), as_signal(u, "input")
-    if t.size != u.size:
-        raise InputError(f"time and input differ in length ({t.size} and {u.size} samples)")
-    if t.size > 1 and np.any(np.diff(t) <= 0.0):
-        raise InputError("time must increase from sample to sample")
-    return t, u
 
 
 def _mapping(value: object, what: str, keys: Sequence[str] | None = None) -> dict:

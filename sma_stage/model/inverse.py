@@ -9,7 +9,8 @@ import numpy as np
 
 from sma_stage.errors import InputError
 from sma_stage.model import _kernels
-from sma_stage.model.forward import as_signal, forward, initial_states, model_arrays
+from sma_stage.model.checks import as_signal
+from sma_stage.model.forward import forward, initial_states, model_arrays
 from sma_stage.model.parameters import DEFAULT_OPERATORS, GPIParameters, check_operators
 
 METHODS = ("exact", "analytic")

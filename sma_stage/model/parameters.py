@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from sma_stage.errors import InputError
+from sma_stage.model.checks import float_or_inf, shown_number
 
 PARAMETER_NAMES: tuple[str, ...] = tuple(f"a{k}" for k in range(1, 12))
 MODEL_KIND = "gpi"
@@ -130,20 +130,6 @@ class GPIParameters:
             problems.append("density overflows at the largest threshold (a11 too negative)")
         return problems
 
-    def to_yaml(self, path: str | os.PathLike, operators: int = DEFAULT_OPERATORS,
-                metadata: dict | None = None) -> None:
-        """Write a plain GPI model file (atomically): see sma_stage.model.identified."""
-        from sma_stage.model.identified import IdentifiedModel
-
-        IdentifiedModel(self, operators, metadata=metadata or {}).save(path)
-
-    @classmethod
-    def from_yaml(cls, path: str | os.PathLike) -> GPIParameters:
-        """Parameters from a model file."""
-        from sma_stage.model.identified import load_model_file
-
-        return load_model_file(path).parameters
-
 
 def _checked_weights(weights: object) -> tuple[float, ...]:
     """Free density weights as floats: finite, not negative, the first above 0 (the inverse divides by it)."""
@@ -158,20 +144,6 @@ def _checked_weights(weights: object) -> tuple[float, ...]:
     if not values or values[0] <= 0.0:
         raise InputError("free GPI weights need at least one value and a first weight above 0")
     return tuple(values)
-
-
-def float_or_inf(value: float | int) -> float:
-    """float(value), or +-inf for an integer too large for a float (float() raises OverflowError)."""
-    try:
-        return float(value)
-    except OverflowError:
-        return math.inf if value > 0 else -math.inf
-
-
-def shown_number(value: object, limit: int = 40) -> str:
-    """repr(value) for a message, cut to `limit` characters (a 400-digit integer stays one short line)."""
-    text = repr(value)
-    return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
 
 
 def check_operators(operators: int) -> int:

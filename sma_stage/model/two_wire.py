@@ -31,7 +31,8 @@ import numba
 import numpy as np
 
 from sma_stage.errors import InputError
-from sma_stage.model.held import HeldCurrentModel, HeldState, finite_value
+from sma_stage.model.checks import finite_value
+from sma_stage.model.held import HeldCurrentModel, HeldState
 
 KIND = "two_wire"
 SCALARS = ("tau_a_s", "tau_b_s", "heating_reference_a", "coupling_a", "coupling_b", "centre_a", "centre_b",

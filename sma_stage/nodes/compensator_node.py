@@ -55,11 +55,10 @@ from sma_stage.control.compensator import (
     checked_gains,
     imc_gains,
 )
-from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.io.rosbag_io import joint_index
-from sma_stage.model.identified import any_model_from_yaml_text, load_any_model_file
 from sma_stage.model.inverse import METHODS
+from sma_stage.model.kinds import AnyModel, any_model_from_yaml_text, load_any_model_file
 from sma_stage.nodes._common import (
     COMMAND_QOS,
     JOINT_NAME,

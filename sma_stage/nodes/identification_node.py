@@ -62,7 +62,6 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
-from sma_stage.control.drives import AnyModel
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
 from sma_stage.identify.diagnosis import MAX_NICENESS, WORKER_NICENESS, lower_priority, warm_up
@@ -82,7 +81,7 @@ from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import strict_json
 from sma_stage.io.rosbag_io import joint_index, output_times, unfinished_bags
 from sma_stage.io.series import Series
-from sma_stage.model.identified import any_model_from_yaml_text
+from sma_stage.model.kinds import AnyModel, any_model_from_yaml_text
 from sma_stage.model.parameters import MAX_OPERATORS
 from sma_stage.nodes._common import (
     COMMAND_QOS,

@@ -17,10 +17,10 @@ from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
-from sma_stage.control.drives import AnyModel
 from sma_stage.identify.watch import DriftTest, ModelWatch, RecentRecord, load_kernels
 from sma_stage.io.rosbag_io import output_times
 from sma_stage.model.identified import load_model_file
+from sma_stage.model.kinds import AnyModel
 from sma_stage.nodes._common import STATE_PUBLISH_QOS
 from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 
