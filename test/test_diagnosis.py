@@ -11,8 +11,8 @@ import pytest
 from synthetic import DEFAULT_EFFECTS, TRUE_OPERATORS, TRUE_PARAMETERS, make_case
 
 from sma_stage.errors import InputError
-from sma_stage.identify import diagnosis as diagnosis_module
-from sma_stage.identify.diagnosis import Workers, diagnose
+from sma_stage.identify import workers as workers_module
+from sma_stage.identify.diagnosis import diagnose
 from sma_stage.identify.effects import EFFECT_NAMES
 from sma_stage.identify.effects.delay import delayed_input
 from sma_stage.identify.effects.rate import rate_model_output
@@ -20,6 +20,7 @@ from sma_stage.identify.effects.thermal_lag import lagged_input
 from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.identify.residual_tests import TEST_NAMES, residual_tests
+from sma_stage.identify.workers import Workers
 from sma_stage.io import read_csv
 from sma_stage.model import forward
 from sma_stage.model.effects import input_rate, rate_forward
@@ -109,7 +110,7 @@ def test_workers_started_in_the_background_answer_in_order_and_close():
 
 START_METHOD_SCRIPT = """
 import os, signal, sys, threading
-from sma_stage.identify.diagnosis import Workers
+from sma_stage.identify.workers import Workers
 
 
 def parent(_):
@@ -169,7 +170,7 @@ def test_workers_that_cannot_start_give_a_one_line_error(monkeypatch):
     def no_processes(*args, **kwargs):
         raise OSError("[Errno 24] Too many open files")
 
-    monkeypatch.setattr(diagnosis_module, "ProcessPoolExecutor", no_processes)
+    monkeypatch.setattr(workers_module, "ProcessPoolExecutor", no_processes)
     with Workers(2) as pool, pytest.raises(InputError, match=r"could not be started \(\[Errno 24\] Too many open"):
         pool.run(divmod, [(7, 2), (9, 4)], None, "{}")
 

@@ -19,8 +19,8 @@ from scpi_server import LoopbackRig  # noqa: E402
 from test_hardware import rig_config  # noqa: E402
 
 from sma_stage.identify.cancel import Cancelled, cancellable, check_cancelled  # noqa: E402
-from sma_stage.identify.diagnosis import Workers  # noqa: E402
 from sma_stage.identify.fit import fit_gpi  # noqa: E402
+from sma_stage.identify.workers import Workers  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, make_executor, spin_while  # noqa: E402
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, wait_for  # noqa: E402
 from sma_stage.signals import paper_identification_signal  # noqa: E402

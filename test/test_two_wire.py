@@ -8,10 +8,10 @@ from antagonistic_plant import VARIANTS, records, third_record
 from threadpoolctl import threadpool_limits
 
 from sma_stage.errors import InputError
-from sma_stage.identify.diagnosis import Workers
 from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.identify.two_wire import HeldOut, TwoWireFitting, fit_two_wire
+from sma_stage.identify.workers import Workers
 from sma_stage.model.two_wire import TwoWireModel, TwoWireParameters
 
 SPAN_M = 6e-4

@@ -14,11 +14,11 @@ import numpy as np
 
 from sma_stage.errors import InputError
 from sma_stage.identify.bouc_wen import BoucWenFit, fit_bouc_wen
-from sma_stage.identify.diagnosis import Pending, Workers
 from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.free_weights import fit_free_weights
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.two_wire import HeldOut, TwoWireFit, TwoWireFitting
+from sma_stage.identify.workers import Pending, Workers
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
 

@@ -12,14 +12,7 @@ import numpy as np
 
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
-from sma_stage.identify.diagnosis import (
-    WORKER_NICENESS,
-    Diagnosis,
-    Pending,
-    Workers,
-    diagnose,
-    one_blas_thread,
-)
+from sma_stage.identify.diagnosis import Diagnosis, diagnose
 from sma_stage.identify.families import (
     HELD_CURRENT_FAMILIES,
     FamilyRow,
@@ -33,6 +26,7 @@ from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, information_
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
 from sma_stage.identify.two_wire import HeldOut
+from sma_stage.identify.workers import WORKER_NICENESS, Pending, Workers, one_blas_thread
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
 from sma_stage.model.kinds import AnyModel

@@ -64,7 +64,6 @@ from std_srvs.srv import Trigger
 
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import Cancelled
-from sma_stage.identify.diagnosis import MAX_NICENESS, WORKER_NICENESS, lower_priority, warm_up
 from sma_stage.identify.families import FAMILIES, check_families
 from sma_stage.identify.history import ModelHistory, judge_swap, started_from
 from sma_stage.identify.pipeline import (
@@ -76,6 +75,7 @@ from sma_stage.identify.pipeline import (
     refit_hysteresis,
 )
 from sma_stage.identify.watch import DriftTest, ModelWatch
+from sma_stage.identify.workers import MAX_NICENESS, WORKER_NICENESS, lower_priority, warm_up
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.plain import strict_json
