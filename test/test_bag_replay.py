@@ -39,7 +39,8 @@ from sma_stage.identify.metrics import error_metrics  # noqa: E402
 from sma_stage.io import load_series, write_csv  # noqa: E402
 from sma_stage.io.rosbag_io import _typestore  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, STATE_PUBLISH_QOS  # noqa: E402
-from sma_stage.nodes.identification_node import IdentificationNode, report_json  # noqa: E402
+from sma_stage.nodes.identification.refit import report_json  # noqa: E402
+from sma_stage.nodes.identification_node import IdentificationNode  # noqa: E402
 from sma_stage.nodes.launch import find_executable  # noqa: E402
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("rclpy")
 
 from sma_stage.nodes.compensator_node import COMPENSATOR_PARAMS  # noqa: E402
-from sma_stage.nodes.identification_node import IDENTIFICATION_PARAMS  # noqa: E402
+from sma_stage.nodes.identification.params import IDENTIFICATION_PARAMS  # noqa: E402
 from sma_stage.nodes.stage_node import STAGE_PARAMS  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

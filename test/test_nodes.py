@@ -1249,7 +1249,7 @@ def test_an_excitation_can_be_aborted_and_reports_its_progress(ros):
 
 
 def test_identification_keeps_serving_during_a_refit(ros, monkeypatch):
-    import sma_stage.nodes.identification_node as module
+    import sma_stage.nodes.identification.refit as module
 
     release = threading.Event()
     real_fit = module.identify_recording
@@ -1448,7 +1448,7 @@ def test_a_failing_disk_ends_recording_in_one_line_and_keeps_the_bag(tmp_path, m
     transaction) and let messages queue without bound for the dead writer."""
     import errno
 
-    import sma_stage.nodes.identification_node as module
+    import sma_stage.nodes.identification.recording as module
     from sma_stage.io.rosbag_io import BagRecorder
 
     failures: list[str] = []
