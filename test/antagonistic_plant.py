@@ -1,6 +1,6 @@
 """A second physical SMA stage, written for the tests from another formulation than the package's simulator
 (sma_stage/plant/physics.py: Brinson-type phase kinetics with cosine laws, wires cut into nodes). It imports
-nothing from sma_stage; `main` alone, which prints the table of docs/identification.md, calls the package.
+nothing from sma_stage; `main` alone, which prints the table of docs/families.md, calls the package.
 
 Two NiTi wires work against each other through a lever; a relay sends the current to wire A (u > 0) or wire B
 (u < 0). Per wire, per sub-step:

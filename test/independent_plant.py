@@ -19,7 +19,7 @@ Every record starts after a history: either held at its first current long enoug
 rest HISTORY_S seconds before the first sample; only t >= 0 is recorded. Noise: NOISE_PCT % of the
 recorded span, Gaussian.
 
-`python test/independent_plant.py --seeds 0,1,2` prints the table in docs/identification.md.
+`python test/independent_plant.py --seeds 0,1,2` prints the table in docs/identification_results.md.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Test-only data: records of the stage simulator (sma_stage.plant, a physical model with no GPI inside)
-with an effect switched on, and a table of what `diagnose` names on them (docs/identification.md).
+with an effect switched on, and a table of what `diagnose` names on them (docs/identification_results.md).
 
     PYTHONPATH=. python test/simulator_diagnosis.py --order paper --effects none,sensor_delay_s=8
     PYTHONPATH=. python test/simulator_diagnosis.py --effects sensor_delay_s=3 --delay-profile 0,3,6

@@ -135,7 +135,7 @@ def make_case(effect: str, seed: int = 0, noise_sigma_m: float = NOISE_SIGMA_M,
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Print a Markdown table of `diagnose` on every case and seed (the numbers in docs/identification.md)."""
+    """Print a Markdown table of `diagnose` on every case and seed (the numbers in docs/identification_results.md)."""
     import argparse
     import time
 

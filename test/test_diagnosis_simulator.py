@@ -2,7 +2,7 @@
 (identification on the decaying sine, validation on the two cosines), nothing declared to the
 identification: the simulator's own wire heating and cooling is the effect the GPI lacks. A 3 s sensor
 delay switched on is taken by the thermal reading: these records cannot tell it from the simulator's own
-dynamics (docs/identification.md, section 5)."""
+dynamics (docs/identification_results.md)."""
 
 import functools
 

@@ -323,7 +323,7 @@ def nominal_fit(nominal_stage):
 
 def test_the_two_wire_model_identified_on_the_second_stage_validates(nominal_stage, nominal_fit):
     """Identified on the paper's identification signal, validated on the paper's validation signal (each from a
-    settled stage): the issue's targets, 2 % RMS and 10 % max (docs/identification.md: 1.15 % and 6.4 %); the
+    settled stage): the issue's targets, 2 % RMS and 10 % max (docs/families.md: 1.15 % and 6.4 %); the
     plain GPI on the same records is several times worse."""
     t, u, y = nominal_stage["identification"]
     t_valid, u_valid, y_valid = nominal_stage["validation"]

@@ -170,7 +170,7 @@ def dynamics_held_refusal(model: AnyModel) -> str | None:
 # A tracking record seldom reaches the envelopes' knees: with their slopes free, the refit of a record that starts
 # after a load step put the envelope's saturation at the record's lowest position in every seed tried (the model's
 # reach at -5 A narrowed from about -500 to -281 um), and the compensator then drove the full current wherever
-# a target lay a little beyond it (docs/identification.md section 9, "On drift"; bench/bench_refit_reach.py).
+# a target lay a little beyond it (docs/watch.md, "On drift"; bench/bench_refit_reach.py).
 REFIT_HELD = ("a2", "a6")
 
 

@@ -5,7 +5,7 @@ the record, the best polished on all of it. Plain arrays in, a result object out
 `shapes`: "shared" (the default) gives both wires one transformation shape (width, hysteresis width, weights),
 each wire keeping its own time constant, centre, coupling and stroke; "per_wire" frees them all. Per-wire shapes
 predict the stage simulator better and the second physical stage worse in its worst records
-(docs/identification.md, section 6, gives the figures).
+(docs/families.md gives the figures).
 """
 
 from __future__ import annotations
