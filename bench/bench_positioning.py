@@ -1,0 +1,244 @@
+"""Positioning stages the control law was not tuned on: each plant identified by the package from the paper's
+identification record (the family `diagnose` chooses, as `gpi_tool diagnose` does), then driven by
+sma_stage.control.Compensator through setpoints of several shapes, feedforward and with the PI loop.
+Prints one table and writes it to bench/results/positioning.md (--out).
+
+    .venv/bin/python bench/bench_positioning.py [--plants simulator,nominal,...] [--out FILE] [--seed 0]
+
+Plants: the package's stage simulator; every variant of test/antagonistic_plant.py (a second physical stage the
+model code did not make: Preisach hysterons per wire, stress coupling, detwinning, a lever); and three variants
+made here from the same physics: `slow_wires` (thicker wires, less convection), `fast_wires` (thinner wires,
+more convection) and `upper_band` (transformation temperatures 67 K higher: held currents below about 3 A do
+not move the stage, 3.5 A moves it 20 % of its reach, 5 A all of it). Each plant is sampled and commanded every 0.2 s; its identification record is the paper's
+decaying sine (1000 s), validated on the paper's validation record from its own settled stage. The tracking
+continues the plant that ran the identification record, so that the model's carried state is the stage's.
+
+Setpoints, each over 70 % of the stroke the identification record reached, centred, after 60 s at the shape's
+first value (not scored): sines of 20, 50, 100 and 250 s period (400 s; 500 s for 250 s), the paper's validation
+shape (1000 s), eight random levels held 60 s each (settled: the mean error over the last 20 s of each hold; the
+mean and the largest over the holds) and a slow ramp (300 s up, 300 s down). Columns: RMS and max error [% of the
+stroke] over the scored part, and the current's change from one command to the next (99th percentile, % of the
+5 A limit), so that a law that chatters cannot win.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "test"))
+
+import antagonistic_plant as physical  # noqa: E402
+
+from sma_stage.control import Compensator  # noqa: E402
+from sma_stage.control.compensator import imc_gains  # noqa: E402
+from sma_stage.identify.families import FAMILIES  # noqa: E402
+from sma_stage.identify.pipeline import identify_recording  # noqa: E402
+from sma_stage.io import make_series  # noqa: E402
+from sma_stage.model.kinds import AnyModel  # noqa: E402
+from sma_stage.plant import StageSimulator  # noqa: E402
+
+PERIOD_S = 0.2
+RECORD_S = 1000.0
+MAX_CURRENT_A = 5.0
+STROKE_FRACTION = 0.7
+LEAD_IN_S = 60.0
+HOLD_S, SETTLED_S, HOLDS = 60.0, 20.0, 8
+NEW_VARIANTS = {
+    "slow_wires": replace(physical.Stage(), wire_diameter_m=0.75e-3, convection_w_m2_k=100.0),
+    "fast_wires": replace(physical.Stage(), wire_diameter_m=0.4e-3, convection_w_m2_k=250.0),
+    "upper_band": replace(physical.Stage(), austenite_start_k=400.0, austenite_finish_k=425.0,
+                          martensite_start_k=385.0, martensite_finish_k=360.0),
+}
+PLANTS = ["simulator", *physical.VARIANTS, *NEW_VARIANTS]
+
+
+class SimulatorPlant:
+    """The package's stage simulator; a record's sample k holds the position after its current was applied."""
+
+    def __init__(self, seed: int) -> None:
+        self.stage = StageSimulator(seed=seed)
+
+    def record(self, current: np.ndarray) -> np.ndarray:
+        return np.array([self.step(value) for value in current])
+
+    def step(self, current_a: float) -> float:
+        """Apply current_a [A] for PERIOD_S; the measured position [m] at the end."""
+        return self.stage.step(current_a, PERIOD_S).measured_position_m
+
+
+class PhysicalPlant:
+    """test/antagonistic_plant.py's stage, settled at zero current; a record's sample k holds the position when its
+    current starts (as that module records); noise NOISE_PCT % of the identification record's span."""
+
+    def __init__(self, stage: physical.Stage, seed: int) -> None:
+        self.plant = physical.AntagonisticStage(stage)
+        self.rng = np.random.default_rng(seed)
+        self.noise_m = 0.0
+        for _ in range(int(physical.HISTORY_S / PERIOD_S)):
+            self._advance(0.0)
+
+    def _advance(self, current_a: float) -> None:
+        for _ in range(physical.SUBSTEPS):
+            self.plant.step(current_a, PERIOD_S / physical.SUBSTEPS)
+
+    def record(self, current: np.ndarray) -> np.ndarray:
+        positions = np.empty(current.size)
+        for k, value in enumerate(current):
+            positions[k] = self.plant.position_m
+            self._advance(float(value))
+        self.noise_m = physical.NOISE_PCT / 100.0 * float(np.ptp(positions))
+        return positions + self.rng.normal(0.0, self.noise_m, positions.size)
+
+    def step(self, current_a: float) -> float:
+        """Apply current_a [A] for PERIOD_S; the measured position [m] at the end."""
+        self._advance(current_a)
+        return self.plant.position_m + self.rng.normal(0.0, self.noise_m)
+
+
+def make_plant(name: str, seed: int) -> SimulatorPlant | PhysicalPlant:
+    if name == "simulator":
+        return SimulatorPlant(seed)
+    return PhysicalPlant({**physical.VARIANTS, **NEW_VARIANTS}[name], seed)
+
+
+@dataclass
+class Identified:
+    """A plant after its identification record, the model the package chose, and the stroke it reached [m]."""
+
+    plant: SimulatorPlant | PhysicalPlant
+    model: AnyModel
+    name: str
+    validation_rms_pct: float
+    stroke_m: tuple[float, float]
+    seconds: float
+
+
+def identify(name: str, seed: int) -> Identified:
+    """Run the plant through the paper's identification record and identify it (every family, 4 rounds, as
+    `gpi_tool diagnose` does); the validation record runs on a fresh plant of the same kind."""
+    started = time.perf_counter()
+    t = PERIOD_S * np.arange(int(RECORD_S / PERIOD_S))
+    plant = make_plant(name, seed)
+    y_ident = plant.record(physical.paper_identification(t))
+    y_valid = make_plant(name, seed + 1).record(physical.paper_validation(t))
+    found = identify_recording(make_series(t, physical.paper_identification(t), y_ident, "identification"),
+                               make_series(t, physical.paper_validation(t), y_valid, "validation"),
+                               diagnose_rounds=4, workers=2, families=FAMILIES)
+    rows = found.report.get("families") or []
+    chosen = [row for row in rows if row["chosen"]]
+    valid = chosen[0]["validation"]["rms_pct"] if chosen else found.report["validation"]["rms_pct"]
+    described = chosen[0]["model"] if chosen else "gpi"
+    return Identified(plant, found.model, described, valid, (float(y_ident.min()), float(y_ident.max())),
+                      time.perf_counter() - started)
+
+
+def shapes(seed: int) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
+    """Setpoint shapes in [-1, 1] of time since the shape began [s], by name."""
+    levels = np.random.default_rng(seed + 7).uniform(-1.0, 1.0, HOLDS)
+    sines = {f"sine {period:g} s": (lambda s, p=period: np.sin(2.0 * np.pi * s / p)) for period in (20, 50, 100, 250)}
+    return {**sines,
+            "paper's validation": lambda s: physical.paper_validation(s) / 5.0,
+            "held levels": lambda s: levels[np.minimum((s // HOLD_S).astype(int), HOLDS - 1)],
+            "slow ramp": lambda s: 1.0 - 2.0 * np.abs(s / 300.0 - 1.0)}
+
+
+def duration_s(shape: str) -> float:
+    return {"sine 250 s": 500.0, "paper's validation": 1000.0, "held levels": HOLD_S * HOLDS, "slow ramp": 600.0}.get(
+        shape, 400.0)
+
+
+@dataclass(frozen=True)
+class Tracked:
+    rms_pct: float
+    max_pct: float
+    change_p99_pct: float
+    settled_mean_pct: float | None = None
+    settled_max_pct: float | None = None
+
+
+def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.ndarray], feedback: bool) -> Tracked:
+    """The plant (a copy of it after its identification record) driven through one shape by the compensator."""
+    plant = copy.deepcopy(identified.plant)
+    model = identified.model
+    gains = imc_gains(model, PERIOD_S) if feedback else {"kp": 0.0, "ki": 0.0}
+    compensator = Compensator(model, MAX_CURRENT_A, **gains)
+    low, high = identified.stroke_m
+    span = high - low
+    centre, half = 0.5 * (low + high), 0.5 * STROKE_FRACTION * span
+    lead_in = int(LEAD_IN_S / PERIOD_S)
+    steps = lead_in + int(duration_s(shape) / PERIOD_S)
+    since_s = np.maximum(PERIOD_S * (np.arange(steps + 1) - lead_in), 0.0)
+    wanted = centre + half * form(since_s)
+    measured = plant.step(compensator.drive.initial_current())
+    positions, currents = np.empty(steps), np.empty(steps)
+    for k in range(steps):
+        currents[k] = compensator.command(wanted[k], measured if feedback else None, PERIOD_S if k else 0.0)
+        measured = positions[k] = plant.step(currents[k])
+    scored = slice(lead_in, None)
+    error = 100.0 * (positions - wanted[1:])[scored] / span
+    change = 100.0 * np.abs(np.diff(currents[lead_in - 1:])) / MAX_CURRENT_A
+    result = Tracked(float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error))), float(np.percentile(change, 99)))
+    if shape != "held levels":
+        return result
+    per_hold = int(HOLD_S / PERIOD_S)
+    settled = [abs(float(np.mean(error[(hold + 1) * per_hold - int(SETTLED_S / PERIOD_S):(hold + 1) * per_hold])))
+               for hold in range(HOLDS)]
+    return replace(result, settled_mean_pct=float(np.mean(settled)), settled_max_pct=float(np.max(settled)))
+
+
+HEADER = ("| plant | model (held-out RMS %) | setpoint | feedforward RMS / max % | PI loop RMS / max % | "
+          "settled mean / max %: ff; loop | p99 current change %: ff; loop |\n|---|---|---|---|---|---|---|")
+
+
+def rows(name: str, identified: Identified, seed: int) -> list[str]:
+    """The table's rows of one plant: each shape, feedforward and with the PI loop."""
+    lines = []
+    for shape, form in shapes(seed).items():
+        ff, loop = (track(identified, shape, form, feedback) for feedback in (False, True))
+        settled = "" if ff.settled_mean_pct is None else (
+            f"{ff.settled_mean_pct:.2f} / {ff.settled_max_pct:.2f}; {loop.settled_mean_pct:.2f} / {loop.settled_max_pct:.2f}")
+        first = f"{name} | {identified.name} ({identified.validation_rms_pct:.2f})" if not lines else " | "
+        lines.append(f"| {first} | {shape} | {ff.rms_pct:.2f} / {ff.max_pct:.1f} | {loop.rms_pct:.2f} / "
+                     f"{loop.max_pct:.1f} | {settled} | {ff.change_p99_pct:.1f}; {loop.change_p99_pct:.1f} |")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--plants", default=",".join(PLANTS), help=f"comma-separated, of {', '.join(PLANTS)}")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=str(REPO / "bench" / "results" / "positioning.md"))
+    args = parser.parse_args()
+    names = args.plants.split(",")
+    unknown = [name for name in names if name not in PLANTS]
+    if unknown:
+        parser.error(f"unknown plant {unknown[0]!r} (known: {', '.join(PLANTS)})")
+    started = time.perf_counter()
+    table = [HEADER]
+    print(HEADER, flush=True)
+    for name in names:
+        for line in rows(name, identify(name, args.seed), args.seed):
+            table.append(line)
+            print(line, flush=True)
+    note = (f"`.venv/bin/python bench/bench_positioning.py --plants {args.plants} --seed {args.seed}`: "
+            f"{time.perf_counter() - started:.0f} s on {time.strftime('%Y-%m-%d')}; deterministic for a seed.")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.with_suffix(".tmp")
+    staging.write_text("# Positioning stages the control law was not tuned on\n\n" + "\n".join(table) + "\n\n"
+                       + note + "\n")
+    staging.replace(out)
+    print(note)
+
+
+if __name__ == "__main__":
+    main()
