@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sma_stage.control import Compensator
-from sma_stage.control.compensator import imc_gains
+from sma_stage.control.compensator import imc_gains, slew_time_s
 from sma_stage.control.thermal import ThermalState
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
@@ -322,9 +322,18 @@ def test_the_loops_target_reverses_only_beyond_the_deadband():
 
 
 def test_imc_gains_follow_the_identified_lag_and_the_control_period():
-    gains = imc_gains(lagged(9.0), 0.1, lead_limit=3.0)
+    gains = imc_gains(lagged(9.0), 0.1, lead_limit=3.0, slew_s=0.0)
     assert gains == pytest.approx({"kp": 3.0 / 2.2, "ki": 1.0 / 2.2}), "lambda 0.7 of the 3 s lag the lead leaves"
-    assert imc_gains(MODEL, 0.5) == {"kp": 0.0, "ki": 2.0}, "no lag: integral action over the dead time"
+    assert imc_gains(MODEL, 0.5, slew_s=0.0) == {"kp": 0.0, "ki": 2.0}, "no lag: integral action over the dead time"
+
+
+def test_imc_gains_close_the_loop_no_faster_than_the_rate_limit_moves_the_current():
+    assert slew_time_s(5.0, 1.0) == 2.5 and slew_time_s(5.0, 0.0) == 0.0
+    assert imc_gains(lagged(9.0), 0.1, lead_limit=3.0, slew_s=2.5) == pytest.approx({"kp": 3.0 / 2.6, "ki": 1.0 / 2.6})
+    assert imc_gains(lagged(0.3), 0.2) == pytest.approx({"kp": 0.1 / 2.7, "ki": 1.0 / 2.7}), "the default: 2.5 s"
+    assert imc_gains(lagged(30.0), 0.2) == imc_gains(lagged(30.0), 0.2, slew_s=0.0), "a slow lag sets it alone"
+    with pytest.raises(InputError, match="slew_s"):
+        imc_gains(MODEL, 0.2, slew_s=-1.0)
     with pytest.raises(InputError, match="control_period_s"):
         imc_gains(MODEL, 0.0)
 

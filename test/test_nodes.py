@@ -803,11 +803,15 @@ def test_compensator_default_model_is_the_shipped_model_file_identified_from_the
     assert compensator.model.effect_names == ["thermal_lag"] and compensator.model.state is None
     assert compensator.values["feedback"], "the default holds a setpoint: the PI loop is on"
     tau = compensator.model.effect("thermal_lag").parameters["tau_s"]
-    lag_left = tau / 3.0
-    assert compensator.core.kp == pytest.approx(lag_left / (0.7 * lag_left + 1.0 / 50.0)), "IMC gains from the model"
+    lag_left, slew_s = tau / 3.0, 5.0 / (2.0 * 1.0)  # the lead limit 3; 5 A at 1 A/s: 2.5 s to move 2.5 A
+    closed_loop = max(0.7 * lag_left, slew_s)
+    assert compensator.core.kp == pytest.approx(lag_left / (closed_loop + 1.0 / 50.0)), "IMC gains from the model"
     lagless = IdentifiedModel(DEFAULT_PARAMS, OPERATORS).to_yaml_text()
     assert compensator.set_parameters([Parameter("model", value=lagless)])[0].successful
-    assert compensator.core.kp == 0.0 and compensator.core.ki == pytest.approx(50.0), "the gains follow the model"
+    assert compensator.core.kp == 0.0 and compensator.core.ki == pytest.approx(1.0 / (slew_s + 1.0 / 50.0)), \
+        "the gains follow the model"
+    assert compensator.set_parameters([Parameter("max_current_rate", value=0.0)])[0].successful
+    assert compensator.core.ki == pytest.approx(50.0), "no rate limit: integral action over the control period"
     assert not compensator.set_parameters([Parameter("tuning", value="fast")])[0].successful
 
 

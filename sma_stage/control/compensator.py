@@ -121,17 +121,28 @@ def checked_gains(kp: float, ki: float) -> dict[str, float]:
     return {name: _non_negative(name, value) for name, value in {"kp": kp, "ki": ki}.items()}
 
 
-def imc_gains(model: AnyModel, control_period_s: float, lead_limit: float = DEFAULT_LEAD_LIMIT
-              ) -> dict[str, float]:
+def slew_time_s(max_current_a: float, max_rate_a_per_s: float) -> float:
+    """The time [s] the rate limit takes to move the current over half its range, max_current / (2 max_rate);
+    0 without a rate limit (max_rate 0)."""
+    return 0.0 if max_rate_a_per_s == 0.0 else max_current_a / (2.0 * max_rate_a_per_s)
+
+
+DEFAULT_SLEW_S = slew_time_s(5.0, DEFAULT_MAX_RATE_A_PER_S)  # the compensator's defaults: 5 A at 1 A/s, 2.5 s
+
+
+def imc_gains(model: AnyModel, control_period_s: float, lead_limit: float = DEFAULT_LEAD_LIMIT,
+              slew_s: float = DEFAULT_SLEW_S) -> dict[str, float]:
     """PI gains (kp [m/m], ki [1/s]) by IMC (lambda) tuning for what the loop sees around the compensated
     model: a first-order lag of tau_c = tau / lead_limit (tau the model's thermal lag, 0 without one) and
-    one control period of dead time theta; lambda = LAMBDA_FRACTION tau_c: kp = tau_c / (lambda + theta),
-    ki = 1 / (lambda + theta)."""
+    one control period of dead time theta; lambda = LAMBDA_FRACTION tau_c, but at least slew_s (slew_time_s:
+    a loop asked to close faster than the rate limit lets the current move winds its integral up against the
+    slew; bench/results/positioning.md: on a stage whose model has a 0.25 s lag the loop was 2.6 times worse
+    than feedforward); kp = tau_c / (lambda + theta), ki = 1 / (lambda + theta)."""
     period = _non_negative("control_period_s", control_period_s)
     if period == 0.0:
         raise InputError("control_period_s must be above 0")
     lag_left = model_tau_s(model) / max(lead_limit, 1.0)
-    closed_loop = LAMBDA_FRACTION * lag_left
+    closed_loop = max(LAMBDA_FRACTION * lag_left, _non_negative("slew_s", slew_s))
     return {"kp": lag_left / (closed_loop + period), "ki": 1.0 / (closed_loop + period)}
 
 

@@ -13,8 +13,8 @@ model's inverse gives the current, with the lead that undoes a thermal lag (its 
 lead_limit in the loop; without it feedforward_lead_limit while the setpoint moves and
 feedforward_step_lead_limit after a step) and the drift's offset taken off, rate-limited to max_current_rate (see
 sma_stage.control.compensator). With tuning `imc` (the default) kp and ki are derived from the model in
-force (its lag, lead_limit and the control period 1/rate_hz: control.compensator.imc_gains) and follow
-every new model; with `manual` the kp and ki parameters are used. The integral
+force (its lag, lead_limit, the control period 1/rate_hz and the time max_current_rate takes to move the
+current over half of max_current: control.compensator.imc_gains) and follow every new model; with `manual` the kp and ki parameters are used. The integral
 and the lead run on the node clock (simulated time with use_sim_time); the integral stops while the
 command saturates in the direction of the error (anti-windup). A command is published on each setpoint
 and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog): computed again in
@@ -54,6 +54,7 @@ from sma_stage.control.compensator import (
     DEFAULT_MAX_RATE_A_PER_S,
     checked_gains,
     imc_gains,
+    slew_time_s,
 )
 from sma_stage.errors import InputError
 from sma_stage.io.rosbag_io import joint_index
@@ -187,7 +188,8 @@ class CompensatorNode(Node):
         if values["tuning"] not in TUNINGS:
             raise InputError(f"tuning must be one of {', '.join(TUNINGS)}, got {values['tuning']!r}")
         if values["tuning"] == "imc":
-            gains = imc_gains(model, self.tuned_period_s, float(values["lead_limit"]))
+            gains = imc_gains(model, self.tuned_period_s, float(values["lead_limit"]),
+                              slew_time_s(float(values["max_current"]), float(values["max_current_rate"])))
         else:
             gains = checked_gains(values["kp"], values["ki"])
         return {**gains, "lead_limit": float(values["lead_limit"]),
@@ -345,7 +347,8 @@ class CompensatorNode(Node):
         if self.values["tuning"] != "imc" or abs(self.period_estimate_s / self.tuned_period_s - 1.0) <= PERIOD_TOLERANCE:
             return
         self.tuned_period_s = self.period_estimate_s
-        for name, value in imc_gains(self.model, self.tuned_period_s, self.core.lead_limit).items():
+        slew_s = slew_time_s(self.core.max_current_a, self.core.max_rate_a_per_s)
+        for name, value in imc_gains(self.model, self.tuned_period_s, self.core.lead_limit, slew_s).items():
             setattr(self.core, name, value)
         self.get_logger().info(f"control period {self.tuned_period_s:.3g} s of stage time: "
                                f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s (imc)",
