@@ -15,6 +15,7 @@ from sma_stage.identify.effects.base import SCREEN_SAMPLES, Refits, cold_fit
 from sma_stage.identify.fit import (
     SCALE_LIMIT,
     FitResult,
+    check_motion,
     fit_gpi,
     information_criterion,
     levenberg_marquardt,
@@ -220,6 +221,26 @@ def test_quasi_static_data_fit_without_time():
 def test_bad_data_is_refused(u, y, words):
     with pytest.raises(InputError, match=words):
         fit_gpi(u, y, operators=5)
+
+
+def test_a_record_that_moved_the_stage_once_is_refused_for_that_and_not_for_its_direction():
+    """A stage that only the first rise of the input moved (then many cycles, nothing): the output moves over 5 % of
+    its span in one part of the record of 50. Its covariance with the input is negative (it rose while the input
+    did, then stayed up through every cycle), which the direction check used to read as an output that falls."""
+    t = np.arange(1000.0)
+    u = 4.0 * np.sin(2.0 * np.pi * t / 100.0)
+    y = np.minimum(t / 15.0, 1.0) + 1e-4 * np.sin(7.0 * t)
+    assert np.cov(u, y)[0, 1] < 0.0
+    with pytest.raises(InputError, match=r"^no excitation: the output moved over 5 % of its span in only 2 % of the "
+                                         r"record \(1 of 50 parts\); excite over a wider current range"):
+        fit_gpi(u, y, operators=5)
+
+
+def test_a_record_that_moves_in_a_tenth_of_its_parts_excites_the_stage():
+    moving = np.sin(np.pi * np.arange(10.0) / 4.5)  # one part of ten samples spanning the whole record's range
+    check_motion(np.r_[np.tile(moving, 5), np.zeros(450)])  # 5 of 50 parts move: passes
+    with pytest.raises(InputError, match=r"in only 8 % of the record \(4 of 50 parts\)"):
+        check_motion(np.r_[np.tile(moving, 4), np.zeros(460)])
 
 
 def test_bad_options_are_refused():

@@ -180,10 +180,26 @@ def _check_regressors(regressors: np.ndarray | None, samples: int, columns: int 
     return matrix
 
 
+MOTION_PARTS = 50  # the record is cut into this many parts (fewer for a short record: at least 4 samples each)
+MOTION_SHARE = 0.05  # a part moves when its output spans at least this share of the record's span
+MIN_MOVING_SHARE = 0.10  # of the parts; a record moving in fewer does not excite the stage
+
+
+def check_motion(y: np.ndarray) -> None:
+    """InputError (one line) when the output moves over MOTION_SHARE of its span in fewer than MIN_MOVING_SHARE
+    of the record's parts: a stage the input moved once, or a record mostly of a stage at rest."""
+    parts = np.array_split(y, max(min(MOTION_PARTS, y.size // 4), 1))
+    moving = sum(float(np.ptp(part)) >= MOTION_SHARE * float(np.ptp(y)) for part in parts)
+    if moving < MIN_MOVING_SHARE * len(parts):
+        raise InputError(f"no excitation: the output moved over {100 * MOTION_SHARE:g} % of its span in only "
+                         f"{100 * moving / len(parts):.0f} % of the record ({moving} of {len(parts)} parts); excite "
+                         "over a wider current range, or record only while the stage is excited")
+
+
 def check_data(u: np.ndarray, y: np.ndarray, regressors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Input [A] and output as float arrays, refused (InputError) unless fit for identification: finite,
-    equal lengths, at least MIN_SAMPLES, both varying, and the output (less what the regressor columns
-    explain) rising with the input."""
+    equal lengths, at least MIN_SAMPLES, both varying, the output moving over much of the record
+    (check_motion), and the output (less what the regressor columns explain) rising with the input."""
     u = as_signal(u, "input")
     y = as_signal(y, "output")
     if u.size != y.size:
@@ -198,6 +214,7 @@ def check_data(u: np.ndarray, y: np.ndarray, regressors: np.ndarray | None = Non
             raise InputError(f"the {name}'s largest magnitude is {largest:.3g}, outside {low:g} to {high:g}: {hint}")
         if np.ptp(values) <= 1e-12 * largest:
             raise InputError(f"no excitation: the {name} is constant")
+    check_motion(y)
     trend = y
     if regressors is not None and np.size(regressors):
         trend = y - regressors @ np.linalg.lstsq(regressors, y, rcond=None)[0]
