@@ -250,6 +250,7 @@ def test_stage_publishes_the_current_it_applied_clamped_and_zeroed_by_the_watchd
     probe = ros.probe()
     send = command_publisher(probe)
     applied = Listener(probe, Float64, "current_applied", COMMAND_QOS)
+    states = Listener(probe, JointState, "joint_states", STATE_SUBSCRIBE_QOS)
     wait_until(lambda: stage.count_publishers("current_cmd") >= 1 and probe.count_publishers("current_applied") >= 1,
                5.0, "discovery")
     send(3.5)
@@ -257,6 +258,9 @@ def test_stage_publishes_the_current_it_applied_clamped_and_zeroed_by_the_watchd
     wait_until(lambda: applied.messages[-1].data == 0.0, 3.0, "zero after the watchdog")
     values = {message.data for message in applied.messages}
     assert values <= {0.0, 2.0} and 3.5 not in values, "what was applied, never what was requested"
+    efforts = [message.effort[0] for message in states.messages]
+    assert all(len(message.effort) == 1 for message in states.messages)
+    assert 2.0 in efforts and efforts[-1] == 0.0 and set(efforts) <= {0.0, 2.0}, "joint_states' effort: the same"
 
 
 def test_stage_stop_latches_until_resume(ros):

@@ -421,7 +421,8 @@ class StageNode(LifecycleNode):
         self.timing.ended((self.steady.now().nanoseconds - start_ns) * 1e-9)
 
     def publish_reading(self) -> None:
-        """Publish the last reading: /clock (with use_sim_time), current_applied, joint_states."""
+        """Publish the last reading: /clock (with use_sim_time), current_applied, joint_states (the position and,
+        as effort, the current applied over the period that ended at it, under one stamp)."""
         self.applied_a = self.reading.current_a
         stamp = self.stamp()
         if self.clock_pub is not None:
@@ -431,6 +432,7 @@ class StageNode(LifecycleNode):
         message.name = [JOINT_NAME]
         message.position = [self.reading.position_m]
         message.velocity = [self.reading.states["stage/velocity"]]
+        message.effort = [float(self.applied_a)]  # the heating current [A] applied over the period, + wire a
         self.applied_pub.publish(Float64(data=float(self.applied_a)))
         self.joint_pub.publish(message)
         self.published_steps += 1
