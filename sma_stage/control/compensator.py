@@ -78,6 +78,7 @@ import math
 
 from sma_stage.control.drives import Drive, drive_for, model_tau_s, reach_span_m
 from sma_stage.errors import InputError, finite_number
+from sma_stage.model.effects import lag_drive_for, lag_step
 from sma_stage.model.kinds import AnyModel, StreamModel
 
 COMPENSATION = {
@@ -354,18 +355,17 @@ class Compensator:
         return inverse_target, reversal
 
     def _linear_path(self, wanted_a: float, dt: float) -> float:
-        """The linear path's current [A] for wanted_a [A]: through the lead on a first-order lag of the model's
-        tau (gain at most lead_limit), whose state follows the path's share of what was sent."""
+        """The linear path's current [A] for wanted_a [A]: the lead (lag_drive_for, its change at most lead_limit
+        times the wanted one) on a first-order lag of the model's tau, whose state follows the path's share of
+        what was sent."""
         tau = self.drive.tau_s
-        if tau <= 0.0:
-            return wanted_a
         if dt > 0.0:
-            self._linear_lag_a = self._linear_a + (self._linear_lag_a - self._linear_a) * math.exp(-dt / tau)
-        if self._hold_s <= 0.0:
-            return wanted_a
-        reached = -math.expm1(-self._hold_s / tau)  # the lag's share of a step reached over the hold
-        gain = self._lead_limit if reached * self._lead_limit <= 1.0 else 1.0 / reached
-        return self._linear_lag_a + gain * (wanted_a - self._linear_lag_a)
+            self._linear_lag_a = lag_step(self._linear_lag_a, self._linear_a, self._linear_a, dt, tau)
+        seen = self._linear_lag_a
+        exact = lag_drive_for(seen, wanted_a, self._hold_s, tau)
+        if abs(exact - seen) <= self._lead_limit * abs(wanted_a - seen):
+            return exact
+        return seen + self._lead_limit * (wanted_a - seen)
 
     def _bounded(self, position_m: float) -> float:
         """A position [m] within the inverse's target bounds (the model's reach and ten spans beyond): a finite
