@@ -49,7 +49,8 @@ def bad_csv(tmp_path, text):
     return str(path)
 
 
-@pytest.mark.parametrize("case", ["missing file", "missing column", "nan", "no excitation", "few samples"])
+@pytest.mark.parametrize("case", ["missing file", "missing column", "nan", "no excitation", "few samples",
+                                  "moved once"])
 def test_bad_data_ends_with_status_2_and_one_line(case, tmp_path, capsys):
     rows = "\n".join(f"{k},{np.sin(k / 5)},{np.cos(k / 5)}" for k in range(60))
     path = {
@@ -58,11 +59,14 @@ def test_bad_data_ends_with_status_2_and_one_line(case, tmp_path, capsys):
         "nan": bad_csv(tmp_path, "t,input,output\n" + rows + "\n60,nan,0.1"),
         "no excitation": bad_csv(tmp_path, "t,input,output\n" + "\n".join(f"{k},1.0,{k}" for k in range(60))),
         "few samples": bad_csv(tmp_path, "t,input,output\n0,1,2\n1,2,3"),
+        "moved once": bad_csv(tmp_path, "t,input,output\n" + "\n".join(
+            f"{k},{4 * np.sin(k / 16)},{min(k / 15, 1.0) * 1e-4 + 1e-8 * np.sin(7 * k)}" for k in range(1000))),
     }[case]
     assert main(["fit", path, "--out", str(tmp_path / "out"), "--json"]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
     assert len(captured.err.strip().splitlines()) == 1 and captured.err.startswith("gpi_tool: error:")
+    assert case != "moved once" or "no excitation: the output moved over 5 % of its span in only" in captured.err
     assert not (tmp_path / "out").exists()
 
 
