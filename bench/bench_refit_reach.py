@@ -25,9 +25,9 @@ import numpy as np
 
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import imc_gains
-from sma_stage.identify.fit import HOLDABLE
 from sma_stage.identify.history import started_from
 from sma_stage.identify.pipeline import REFIT_HELD, identify_recording, refit_hysteresis
+from sma_stage.identify.projection import HOLDABLE
 from sma_stage.io.series import make_series
 from sma_stage.plant import StageSimulator, simulate
 from sma_stage.plant.config import Effects

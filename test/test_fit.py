@@ -9,21 +9,22 @@ import pytest
 
 from sma_stage.errors import InputError
 from sma_stage.identify import fit as fit_module
+from sma_stage.identify import projection
 from sma_stage.identify._sensitivity import householder_r
+from sma_stage.identify.checks import check_motion
 from sma_stage.identify.effects import base as effects_base
 from sma_stage.identify.effects.base import SCREEN_SAMPLES, Refits, cold_fit
 from sma_stage.identify.fit import (
-    SCALE_LIMIT,
     FitResult,
-    check_motion,
     fit_gpi,
     information_criterion,
-    levenberg_marquardt,
-    model_jacobian,
     normalized,
     predict,
     scale_problems,
 )
+from sma_stage.identify.least_squares import levenberg_marquardt
+from sma_stage.identify.projection import SCALE_LIMIT, scale_limit
+from sma_stage.identify.uncertainty import model_jacobian
 from sma_stage.model import GPIParameters, forward, inverse
 from sma_stage.plant import simulate
 from sma_stage.signals import paper_identification_signal, paper_validation_signal
@@ -327,12 +328,12 @@ def test_badly_scaled_counts_are_passed_over_and_refused_when_none_is_left(monke
 def test_projected_gradient_matches_central_differences_with_the_scale_at_its_bound(monkeypatch):
     _, u, y = identification_data(samples=401)
     start = RAW_TRUTH.replace(a2=0.6, a5=0.55e-3, a8=0.6e-3, a9=0.015e-3)
-    monkeypatch.setattr(fit_module, "SCALE_LIMIT", 0.5)
+    monkeypatch.setattr(projection, "SCALE_LIMIT", 0.5)
     for regressors in (np.zeros((u.size, 0)), np.linspace(0.0, 1.0, u.size)[:, None]):
         problem, a1, x, *_ = fit_module._setup(u, y, regressors, OPERATORS, start)
         residual = problem.fun(x)
         gradient = 2.0 * problem.jac(x).T @ residual
-        limit, _ = fit_module._scale_limit(a1, x, OPERATORS, problem.span)
+        limit, _ = scale_limit(a1, x, OPERATORS, problem.span)
         assert problem.coefficients[-1] == pytest.approx(limit, rel=1e-12)
         for j in range(x.size):
             step = np.zeros_like(x)

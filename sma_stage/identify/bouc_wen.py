@@ -14,7 +14,8 @@ from scipy.optimize import least_squares, lsq_linear
 
 from sma_stage.errors import InputError
 from sma_stage.identify.cancel import check_cancelled
-from sma_stage.identify.fit import check_data, information_criterion
+from sma_stage.identify.checks import check_data
+from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.model.bouc_wen import BoucWenModel, BoucWenParameters
 from sma_stage.model.checks import checked_record

@@ -27,25 +27,26 @@ from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import OptimizeResult
 
 from sma_stage.errors import InputError
-from sma_stage.identify._sensitivity import (
-    SENSITIVITY_COLUMNS,
-    householder_r,
-    normalise_rows,
-    play_sensitivities,
-)
-from sma_stage.identify.cancel import check_cancelled
+from sma_stage.identify.checks import check_data, check_regressors
 from sma_stage.identify.initial_guess import start_points
+from sma_stage.identify.least_squares import TOLERANCE, levenberg_marquardt
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
-from sma_stage.model.checks import as_signal
-from sma_stage.model.forward import forward, initial_states
-from sma_stage.model.parameters import DEFAULT_OPERATORS, PARAMETER_NAMES, GPIParameters, check_operators
+from sma_stage.identify.projection import (
+    FREE_NAMES,
+    HOLDABLE,
+    OFFSET_LIMIT,
+    SCALE_LIMIT,
+    ProjectedProblem,
+    free_start,
+    search_bounds,
+    theta_of,
+)
+from sma_stage.identify.uncertainty import standard_errors
+from sma_stage.model.forward import forward
+from sma_stage.model.parameters import DEFAULT_OPERATORS, GPIParameters, check_operators
 
-MIN_SAMPLES = 20
-INPUT_MAGNITUDES_A = (1e-6, 1e6)  # the largest |input| a record may have: a current in A
-OUTPUT_MAGNITUDES = (1e-100, 1e100)  # the largest |output|, any unit: the fit is scale-free within these
 OPERATOR_CANDIDATES = (5, 10, 15, 20, 25, 30)
 OPERATOR_MARGIN = 0.02  # operators=None: smallest count whose RMS error is within 2 % of the best
 DEFAULT_MAX_ITERATIONS = 200
@@ -54,19 +55,7 @@ SURVEY_STEPS = 15
 FINALISTS = 3  # the best few then converge on a thinned copy of about SCREEN_SAMPLES samples
 SCREEN_SAMPLES = 3000
 SCREEN_MAX_ITERATIONS = 100
-TOLERANCE = 1e-10
 PROFILE_TOLERANCE = 1e-7  # a fit that only compares costs at several values of an effect's parameter
-PROGRESS_INTERVAL_S = 1.0
-NULL_TOLERANCE = 1e-10  # singular values of the column-scaled Jacobian below this (relative) are blind spots
-# Searched: a2..a9 and the density decay per operator a11*a9 (bounded, so that no operator's weight
-# runs away from the others); a1 is held (the scale symmetry) and a10 projected.
-FREE_NAMES = ("a2", "a3", "a4", "a5", "a6", "a7", "a8", "a9", "a11*a9")
-HOLDABLE = FREE_NAMES[:8]  # what fit_gpi's hold may name: the searched parameters a2..a9 (index = their column)
-DECAY_LIMITS = (-3.0, 30.0)  # bounds of a11 * largest threshold: the last weight is e^3 .. e^-30 of the first
-_FREE_COLUMNS = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # their columns among the sensitivities (a1..a9, a11)
-SCALE_LIMIT = 1e3  # normalised a1, a5 and largest threshold: at most this many output spans each
-OFFSET_LIMIT = 2 * SCALE_LIMIT  # |a4|, |a8| from the output's mid-range, in output spans (an active
-# envelope lies within a1 (or a5) plus the largest threshold of the output)
 
 
 @dataclass(frozen=True)
@@ -110,29 +99,6 @@ def _scaled(params: GPIParameters, s: float) -> GPIParameters:
                           a9=params.a9 * s, a10=params.a10 / s, a11=params.a11 / s)
 
 
-def model_jacobian(u: np.ndarray, params: GPIParameters, operators: int,
-                   initial: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(output y [output unit], dy/d(a1..a11) as an (N, 11) array) in one compiled pass."""
-    v = as_signal(u, "input")
-    rows = _sensitivities(v, params.as_array(), check_operators(operators),
-                          initial_states(params, operators, initial))
-    s, sens = rows[0], rows[1:]
-    jac = np.empty((v.size, 11))
-    jac[:, :9] = params.a10 * sens[:9].T
-    jac[:, 9] = s
-    jac[:, 10] = params.a10 * sens[9]
-    return params.a10 * s, jac
-
-
-def _sensitivities(v: np.ndarray, theta: np.ndarray, operators: int, states: np.ndarray | None = None,
-                   out: np.ndarray | None = None) -> np.ndarray:
-    """Rows s (y = a10 s) and ds/d(a1..a9, a11), shape (11, N)."""
-    out = np.empty((1 + SENSITIVITY_COLUMNS, v.size)) if out is None else out
-    states = np.zeros(operators) if states is None else states.copy()
-    play_sensitivities(v, np.ascontiguousarray(theta, dtype=float), operators, states, out)
-    return out
-
-
 def information_criterion(cost: float, samples: int, parameter_count: int, kind: str = "bic") -> float:
     """N log(SSR/N) + k * (2 for "aic", log N for "bic") for Gaussian errors (lower is better); SSR = cost
     [output unit^2], N samples, k parameters."""
@@ -155,208 +121,7 @@ def predict(result: FitResult, u: np.ndarray, regressors: np.ndarray | None = No
         return output
     if regressors is None:
         raise InputError(f"this fit has {coefficients.size} regressor columns: give them to predict")
-    return output + _check_regressors(regressors, output.size, coefficients.size) @ coefficients
-
-
-def _check_regressors(regressors: np.ndarray | None, samples: int, columns: int | None = None) -> np.ndarray:
-    if regressors is None:
-        return np.zeros((samples, 0))
-    try:
-        matrix = np.array(regressors, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("regressors must be numeric") from None
-    if matrix.ndim == 1:
-        matrix = matrix[:, None]
-    if matrix.ndim != 2 or matrix.shape[0] != samples:
-        raise InputError(f"regressors must be an (N, m) array with N = {samples}, got shape {matrix.shape}")
-    if columns is not None and matrix.shape[1] != columns:
-        raise InputError(f"regressors have {matrix.shape[1]} columns, the fit has {columns}")
-    if not np.all(np.isfinite(matrix)):
-        raise InputError("regressors contain a non-finite value")
-    if columns is None and matrix.shape[1]:
-        singular = np.linalg.svd(matrix / np.maximum(np.linalg.norm(matrix, axis=0), 1e-300), compute_uv=False)
-        if singular[-1] <= 1e-10 * singular[0]:
-            raise InputError("regressor columns are linearly dependent (or one is all zeros)")
-    return matrix
-
-
-MOTION_PARTS = 50  # the record is cut into this many parts (fewer for a short record: at least 4 samples each)
-MOTION_SHARE = 0.05  # a part moves when its output spans at least this share of the record's span
-MIN_MOVING_SHARE = 0.10  # of the parts; a record moving in fewer does not excite the stage
-
-
-def check_motion(y: np.ndarray) -> None:
-    """InputError (one line) when the output moves over MOTION_SHARE of its span in fewer than MIN_MOVING_SHARE
-    of the record's parts: a stage the input moved once, or a record mostly of a stage at rest."""
-    parts = np.array_split(y, max(min(MOTION_PARTS, y.size // 4), 1))
-    moving = sum(float(np.ptp(part)) >= MOTION_SHARE * float(np.ptp(y)) for part in parts)
-    if moving < MIN_MOVING_SHARE * len(parts):
-        raise InputError(f"no excitation: the output moved over {100 * MOTION_SHARE:g} % of its span in only "
-                         f"{100 * moving / len(parts):.0f} % of the record ({moving} of {len(parts)} parts); excite "
-                         "over a wider current range, or record only while the stage is excited")
-
-
-def check_data(u: np.ndarray, y: np.ndarray, regressors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Input [A] and output as float arrays, refused (InputError) unless fit for identification: finite,
-    equal lengths, at least MIN_SAMPLES, both varying, the output moving over much of the record
-    (check_motion), and the output (less what the regressor columns explain) rising with the input."""
-    u = as_signal(u, "input")
-    y = as_signal(y, "output")
-    if u.size != y.size:
-        raise InputError(f"input and output differ in length ({u.size} and {y.size} samples)")
-    if u.size < MIN_SAMPLES:
-        raise InputError(f"too few samples to identify the model: {u.size} (at least {MIN_SAMPLES})")
-    for name, values, (low, high), hint in (
-            ("input", u, INPUT_MAGNITUDES_A, "give the current in A"),
-            ("output", y, OUTPUT_MAGNITUDES, "rescale the column (gpi_tool --unit names its unit)")):
-        largest = float(np.max(np.abs(values)))
-        if largest != 0.0 and not low <= largest <= high:
-            raise InputError(f"the {name}'s largest magnitude is {largest:.3g}, outside {low:g} to {high:g}: {hint}")
-        if np.ptp(values) <= 1e-12 * largest:
-            raise InputError(f"no excitation: the {name} is constant")
-    check_motion(y)
-    trend = y
-    if regressors is not None and np.size(regressors):
-        trend = y - regressors @ np.linalg.lstsq(regressors, y, rcond=None)[0]
-    if np.cov(u, trend)[0, 1] <= 0.0:
-        raise InputError("the output falls as the input rises; the GPI model is increasing (negate the output)")
-    return u, y
-
-
-class _Projected:
-    """The variable-projection problem over the free parameters, QR-compressed.
-
-    One Householder QR of [regressors, Ŝ, dŜ/d(free), y] (y ~ s Ŝ + regressors c, Ŝ the output with
-    densities summing to 1) gives the linear coefficients (c, 0 <= s <= _scale_limit), the projected
-    residual and Kaufman's Jacobian P_perp s dŜ/dθ in the same orthonormal basis, so the search works on an
-    11-row problem with the same cost, gradient and Gauss-Newton model as the N-row one.
-    """
-
-    def __init__(self, v: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, a1: float,
-                 span: float, progress: Callable[[str], None] | None = None):
-        self.v, self.y, self.regressors, self.operators, self.a1 = v, y, regressors, operators, a1
-        self.span = span
-        self.progress, self._reported = progress, time.perf_counter()
-        m = regressors.shape[1]
-        self._rows = np.empty((m + 2 + SENSITIVITY_COLUMNS, v.size))
-        skip_a1 = [m + 1 + c for c in _FREE_COLUMNS]
-        self._order = np.array([*range(m), m, *skip_a1, m + 1 + SENSITIVITY_COLUMNS], dtype=np.int64)
-        self._x: np.ndarray | None = None
-        self.evaluations = 0
-
-    def _evaluate(self, x: np.ndarray) -> None:
-        if self._x is not None and np.array_equal(x, self._x):
-            return
-        self.evaluations += 1
-        m = self.regressors.shape[1]
-        rows = self._rows
-        rows[:m] = self.regressors.T
-        _sensitivities(self.v, _theta(self.a1, x), self.operators, out=rows[m:m + 1 + SENSITIVITY_COLUMNS])
-        _to_normalised_rows(rows[m:m + 1 + SENSITIVITY_COLUMNS], x, self.operators)
-        rows[-1] = self.y
-        r = householder_r(rows, self._order)
-        limit, limit_gradient = _scale_limit(self.a1, x, self.operators, self.span)
-        self.coefficients, self.residual, self.jacobian = _projection(r, m, limit, limit_gradient)
-        self._x = x.copy()
-        if self.progress is not None and time.perf_counter() - self._reported >= PROGRESS_INTERVAL_S:
-            self._reported = time.perf_counter()
-            self.progress(f"{self.operators} operators on {self.v.size} samples: evaluation {self.evaluations}, "
-                          f"cost {float(self.residual @ self.residual):.6g}")
-
-    def fun(self, x: np.ndarray) -> np.ndarray:
-        self._evaluate(x)
-        return self.residual
-
-    def jac(self, x: np.ndarray) -> np.ndarray:
-        self._evaluate(x)
-        return self.jacobian
-
-
-def _theta(a1: float, x: np.ndarray, a10: float = 1.0) -> np.ndarray:
-    """a1..a11 from the held a1, the searched (a2..a9, a11*a9) and a10."""
-    return np.concatenate([[a1], x[:8], [a10, x[8] / x[7]]])
-
-
-def _to_normalised_rows(rows: np.ndarray, x: np.ndarray, operators: int) -> None:
-    """Rows (S, dS/d(a1..a9), dS/d(a11)) at fixed a11, S = sum_i w_i z_i, in place to (Ŝ, dŜ/d(a1..a8),
-    dŜ/d(a9) at fixed d, dŜ/dd) with Ŝ = S / sum_i w_i and d = a11*a9: the output is then s Ŝ, s the
-    normalised scale (what a1, a4, a5, a8, a9 are multiplied by when the densities are made to sum 1)."""
-    a9, decay = x[7], x[8]
-    indices = np.arange(operators)
-    weights = np.exp(-decay * indices)
-    total = weights.sum()
-    normalise_rows(rows, float(decay / a9**2), float(a9), float(total), float(indices @ weights / total))
-
-
-def _scale_limit(a1: float, x: np.ndarray, operators: int, span: float) -> tuple[float, np.ndarray]:
-    """Largest normalised scale s allowed, SCALE_LIMIT * span / (a1 + a5 + a9 (n - 1)), so that s times
-    each of them stays within SCALE_LIMIT output spans; and its gradient over the searched parameters."""
-    steps = operators - 1
-    size = a1 + x[3] + x[7] * steps
-    limit = SCALE_LIMIT * span / size
-    gradient = np.zeros(x.size)
-    gradient[3] = -limit / size
-    gradient[7] = -limit * steps / size
-    return limit, gradient
-
-
-def _projection(r: np.ndarray, m: int, limit: float, limit_gradient: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """From the R factor of [regressors (m), Ŝ, dŜ/d(searched), y]: the linear coefficients [c, s] with
-    0 <= s <= limit, the residual (model - data) and its Jacobian, both in the basis orthogonal to the
-    regressors. With s inside its bounds the Jacobian is Kaufman's (zero along Ŝ, whose coefficient
-    follows); with s at limit it carries d limit/dθ."""
-    linear = m + 1
-    triangle, rhs = r[:linear, :linear], r[:linear, -1]
-    diagonal = np.abs(np.diag(triangle))
-    if diagonal.min() > 1e-12 * diagonal.max():
-        coefficients = np.linalg.solve(triangle, rhs)
-    else:
-        coefficients = np.linalg.lstsq(triangle, rhs, rcond=None)[0]
-    scale = coefficients[-1]
-    bounded = not 0.0 <= scale <= limit
-    if bounded:
-        scale = min(max(scale, 0.0), limit)
-        coefficients[-1] = scale
-        if m:
-            others = rhs[:m] - scale * triangle[:m, m]
-            coefficients[:m] = np.linalg.lstsq(triangle[:m, :m], others, rcond=None)[0]
-    shape = r[m:, m]
-    residual = scale * shape - r[m:, -1]
-    jacobian = scale * r[m:, linear:-1]
-    if not bounded:
-        jacobian[0] = 0.0
-    elif scale > 0.0:
-        jacobian += np.outer(shape, limit_gradient)
-    return coefficients, residual, jacobian
-
-
-def _bounds(u: np.ndarray, y: np.ndarray, a1: float, operators: int) -> tuple[np.ndarray, np.ndarray]:
-    """Box for (a2..a9, a11*a9): increasing envelopes, positive thresholds, ranges from the data scale,
-    weights within DECAY_LIMITS of each other."""
-    half_range = 0.5 * float(np.ptp(u))
-    centre = 0.5 * float(np.max(u) + np.min(u))
-    shift = 100.0 * (abs(centre) / half_range + 10.0)
-    middle = 0.5 * float(np.max(y) + np.min(y))
-    gain = (1e-2 / half_range, 1e2 / half_range)
-    offset = (middle - 100.0 * a1, middle + 100.0 * a1)
-    a9_high = 10.0 * a1 / max(operators - 1, 1)
-    steps = max(operators - 1, 1)
-    low = [gain[0], -shift, offset[0], 1e-2 * a1, gain[0], -shift, offset[0], 1e-8 * a1, DECAY_LIMITS[0] / steps]
-    high = [gain[1], shift, offset[1], 1e2 * a1, gain[1], shift, offset[1], a9_high, DECAY_LIMITS[1] / steps]
-    return np.array(low), np.array(high)
-
-
-def _free_start(params: GPIParameters) -> tuple[float, np.ndarray]:
-    """(a1 to hold, free start) with the envelope signs in the increasing convention a1, a2, a5, a6 > 0."""
-    a = params.as_array()
-    for scale, gain, shift in ((0, 1, 2), (4, 5, 6)):
-        if a[scale] < 0.0 and a[gain] < 0.0:
-            a[scale], a[gain], a[shift] = -a[scale], -a[gain], -a[shift]
-        a[scale], a[gain] = abs(a[scale]), abs(a[gain])
-    if a[0] == 0.0:
-        raise InputError("the warm start has a1 = 0 (a flat loading envelope)")
-    return float(a[0]), np.concatenate([a[1:9], [a[10] * a[8]]])
+    return output + check_regressors(regressors, output.size, coefficients.size) @ coefficients
 
 
 @dataclass
@@ -400,105 +165,21 @@ def _converge(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: i
                    str(solution.message))
 
 
-_LM_MESSAGES = {0: "The maximum number of function evaluations is exceeded.",
-                1: "`gtol` termination condition is satisfied.",
-                2: "`ftol` termination condition is satisfied.",
-                3: "`xtol` termination condition is satisfied."}
-_LM_LARGEST_DAMPING = 1e16
-
-
-def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray],
-                        x0: np.ndarray, bounds: tuple[np.ndarray, np.ndarray], max_nfev: int,
-                        tolerance: float = TOLERANCE) -> OptimizeResult:
-    """Minimise ||fun(x)||^2 within bounds: Levenberg-Marquardt with More's column scaling, the step
-    clipped to the box and the parameters held at a bound the gradient pushes against. For the fit's
-    small compressed problems, where scipy's TRF spent more time in its own Python than in fun.
-
-    Stops (status as least_squares's) after max_nfev evaluations (0), when every free column is within
-    tolerance of orthogonal to the residual (1), when an accepted step lowers the cost by at most
-    tolerance of it, or no step lowers it (2), or an accepted step moves x by at most tolerance of it (3).
-    Returns an OptimizeResult: x, cost (half the sum of squares), fun, jac, nfev, status, message."""
-    low, high = (np.asarray(bound, dtype=float) for bound in bounds)
-    inner_low, inner_high = low + 1e-9 * (high - low), high - 1e-9 * (high - low)
-    x = np.clip(np.asarray(x0, dtype=float), inner_low, inner_high)
-    residual, jacobian = fun(x), jac(x)
-    cost = float(residual @ residual)
-    if not (math.isfinite(cost) and np.all(np.isfinite(jacobian))):
-        raise ValueError("the residual or its Jacobian is not finite at the start")
-    evaluations, status = 1, 0
-    column_scale = np.zeros(x.size)
-    damping, growth = 1e-3, 2.0
-    at_new_point = True
-    while evaluations < max_nfev:
-        check_cancelled()
-        if at_new_point:
-            gradient = jacobian.T @ residual
-            normal = jacobian.T @ jacobian
-            column_scale = np.maximum(column_scale, np.sqrt(np.diag(normal)))
-            scale = np.where(column_scale > 0.0, column_scale, 1.0)
-            free = ~(((x <= inner_low) & (gradient > 0.0)) | ((x >= inner_high) & (gradient < 0.0)))
-            if not free.any() or np.max(np.abs(gradient[free]) / scale[free]) <= tolerance * math.sqrt(cost):
-                status = 1
-                break
-            at_new_point = False
-        every = bool(free.all())
-        system = normal.copy() if every else normal[np.ix_(free, free)]
-        system.flat[::system.shape[0] + 1] += damping * scale[free] ** 2
-        try:
-            step = np.linalg.solve(system, -gradient[free])
-        except np.linalg.LinAlgError:
-            step = np.zeros(system.shape[0])
-        if np.all(np.isfinite(step)):
-            if every:
-                trial = np.clip(x + step, inner_low, inner_high)
-            else:
-                trial = x.copy()
-                trial[free] = np.clip(x[free] + step, inner_low[free], inner_high[free])
-            moved = trial - x
-            predicted = cost - float(np.sum((residual + jacobian @ moved) ** 2))
-            trial_residual = fun(trial)
-            evaluations += 1
-            trial_cost = float(trial_residual @ trial_residual)
-            if predicted > 0.0 and trial_cost < cost:
-                lowered = cost - trial_cost
-                x, residual, cost, jacobian = trial, trial_residual, trial_cost, jac(trial)
-                damping *= max(1.0 / 3.0, 1.0 - (2.0 * lowered / predicted - 1.0) ** 3)
-                growth, at_new_point = 2.0, True
-                if lowered <= tolerance * (cost + lowered):
-                    status = 2
-                    break
-                if _norm(moved * scale) <= tolerance * (tolerance + _norm(x * scale)):
-                    status = 3
-                    break
-                continue
-        damping *= growth
-        growth *= 2.0
-        if damping > _LM_LARGEST_DAMPING:
-            status = 2
-            break
-    return OptimizeResult(x=x, cost=0.5 * cost, fun=residual, jac=jacobian, nfev=evaluations, status=status,
-                          message=_LM_MESSAGES[status], success=status > 0)
-
-
-def _norm(vector: np.ndarray) -> float:
-    return math.sqrt(float(vector @ vector))
-
-
 def _setup(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, start: GPIParameters,
            progress: Callable[[str], None] | None = None) -> tuple:
     """(problem, held a1, start x inside the bounds, low, high, mask of the searched parameters)."""
-    a1, x0 = _free_start(start)
-    low, high = _bounds(u, y, a1, operators)
+    a1, x0 = free_start(start)
+    low, high = search_bounds(u, y, a1, operators)
     span = high - low
     x0 = np.clip(x0, low + 1e-9 * span, high - 1e-9 * span)
     free = np.ones(x0.size, dtype=bool)
     if operators == 1:
         free[7:] = False  # one operator: r_0 = 0 and p_0 = a10, so a9 and a11 do nothing
-    return _Projected(u, y, regressors, operators, a1, float(np.ptp(y)), progress), a1, x0, low, high, free
+    return ProjectedProblem(u, y, regressors, operators, a1, float(np.ptp(y)), progress), a1, x0, low, high, free
 
 
 def _parameters(problem_a1: float, x: np.ndarray, a10: float, operators: int, unit: str) -> GPIParameters:
-    theta = _theta(problem_a1, x, a10)
+    theta = theta_of(problem_a1, x, a10)
     return normalized(GPIParameters.from_array(theta, output_unit=unit), operators)
 
 
@@ -590,7 +271,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
 
 def _start_from(found: _Search) -> GPIParameters:
     """The parameters a search reached, in its own scale (a1 held, a10 a placeholder: it is projected)."""
-    return GPIParameters.from_array(_theta(found.a1, found.x))
+    return GPIParameters.from_array(theta_of(found.a1, found.x))
 
 
 def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial: GPIParameters | None = None,
@@ -624,7 +305,7 @@ def fit_gpi(u: np.ndarray, y: np.ndarray, operators: int | None = None, initial:
     search; a count whose result still fails scale_problems is passed over (the message says so), and
     InputError is raised when every count fails.
     """
-    matrix = _check_regressors(regressors, np.size(u))
+    matrix = check_regressors(regressors, np.size(u))
     u, y = check_data(u, y, matrix)
     if initial is not None and not isinstance(initial, GPIParameters):
         raise InputError(f"initial must be GPIParameters, got {type(initial).__name__}")
@@ -777,7 +458,7 @@ def _well_scaled_choice(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, fi
 def _final_parameters(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int, found: _Search,
                       unit: str) -> tuple[GPIParameters, np.ndarray]:
     """Normalised parameters and regressor coefficients where the search ended."""
-    problem = _Projected(u, y, regressors, operators, found.a1, float(np.ptp(y)))
+    problem = ProjectedProblem(u, y, regressors, operators, found.a1, float(np.ptp(y)))
     problem.fun(found.x)
     scale, coefficients = float(problem.coefficients[-1]), problem.coefficients[:-1].copy()
     a10 = scale / float(np.exp(-found.x[8] * np.arange(operators)).sum())
@@ -790,7 +471,7 @@ def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
     predicted = forward(u, params, operators) + regressors @ coefficients
     residual = y - predicted
     cost = float(residual @ residual)
-    errors, regressor_errors = _standard_errors(u, params, operators, regressors, cost, held)
+    errors, regressor_errors = standard_errors(u, params, operators, regressors, cost, held)
     return FitResult(
         parameters=params, operators=operators, standard_errors=errors,
         regressor_coefficients=coefficients, predicted=predicted, residual=residual,
@@ -800,52 +481,3 @@ def _result(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
     )
 
 
-def _standard_errors(u: np.ndarray, params: GPIParameters, operators: int, regressors: np.ndarray,
-                     cost: float, held: frozenset[str] = frozenset()) -> tuple[dict[str, float], np.ndarray]:
-    """sigma^2 (J^T J)^-1, sigma^2 = SSR / (N - p), in the normalised form: free a1..a9, a11 and c;
-    a10 = 1 / sum exp(-a11 r_i) follows from them (delta method). Infinite where the data cannot tell
-    a parameter apart (e.g. a constant regressor column against a common shift of a4 and a8).
-    The design's columns are built in place in one (11 + regressors) x N array (its only copy of N rows)."""
-    v = as_signal(u, "input")
-    m = regressors.shape[1]
-    rows = np.empty((1 + SENSITIVITY_COLUMNS + m, v.size))
-    _sensitivities(v, params.as_array(), check_operators(operators), initial_states(params, operators, None),
-                   out=rows[:1 + SENSITIVITY_COLUMNS])
-    indices = np.arange(operators)
-    weights = np.exp(-params.a11 * params.a9 * indices)
-    total = weights.sum()
-    a10_gradient = np.zeros(10)  # d a10 / d(a1..a9, a11)
-    a10_gradient[8] = params.a11 * (indices @ weights) / total**2
-    a10_gradient[9] = params.a9 * (indices @ weights) / total**2
-    shape = rows[0]  # dy/da10 = s, carried into each free column through a10's gradient
-    for column in range(SENSITIVITY_COLUMNS):
-        rows[1 + column] *= params.a10
-        rows[1 + column] += a10_gradient[column] * shape
-    rows[1 + SENSITIVITY_COLUMNS:] = regressors.T
-    columns = SENSITIVITY_COLUMNS + m
-    functions = np.vstack([np.eye(columns), np.r_[a10_gradient, np.zeros(columns - 10)]])
-    free_names = [name for name in PARAMETER_NAMES if name != "a10"]
-    known = [free_names.index(name) for name in held]  # held: no column, and no part in a10's spread
-    rows[[1 + column for column in known]] = 0.0
-    functions[:, known] = 0.0
-    variances = _variances(rows[1:], cost / max(u.size - columns + len(known), 1), functions)
-    errors = {name: float(np.sqrt(variances[k])) for k, name in enumerate(free_names)}
-    errors["a10"] = float(np.sqrt(variances[-1]))
-    return {name: errors[name] for name in PARAMETER_NAMES}, np.sqrt(variances[10:-1])
-
-
-def _variances(columns: np.ndarray, sigma2: float, functions: np.ndarray) -> np.ndarray:
-    """sigma^2 g^T (J^T J)^+ g for each row g of functions (in J's column units), from J's R factor with
-    columns scaled to unit norm; infinite for a g that changes along a direction J does not see.
-    columns: J transposed (one row per column of J, N long), overwritten."""
-    norms = np.sqrt(np.einsum("ij,ij->i", columns, columns))
-    norms[norms == 0.0] = 1.0
-    columns /= norms[:, None]
-    r = householder_r(columns, np.arange(columns.shape[0], dtype=np.int64))
-    _, singular, vt = np.linalg.svd(r)
-    seen = singular > NULL_TOLERANCE * singular[0]
-    scaled = functions / norms
-    variances = sigma2 * np.sum((scaled @ vt[seen].T / singular[seen]) ** 2, axis=1)
-    unseen = np.max(np.abs(scaled @ vt[~seen].T), axis=1, initial=0.0)
-    variances[unseen > 1e-6 * np.linalg.norm(scaled, axis=1)] = np.inf
-    return variances

@@ -12,6 +12,7 @@ import numpy as np
 
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
+from sma_stage.identify.checks import MIN_SAMPLES
 from sma_stage.identify.diagnosis import Diagnosis, diagnose
 from sma_stage.identify.families import (
     HELD_CURRENT_FAMILIES,
@@ -22,7 +23,7 @@ from sma_stage.identify.families import (
     held_current_row,
     start_held_current_fit,
 )
-from sma_stage.identify.fit import MIN_SAMPLES, FitResult, fit_gpi, information_criterion, predict
+from sma_stage.identify.fit import FitResult, fit_gpi, information_criterion, predict
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.report import fit_report
 from sma_stage.identify.two_wire import HeldOut
