@@ -45,7 +45,7 @@ def delay_profile(effects: Effects, order: str, delays: list[float]) -> None:
     """Print, for each dead time d [s] put in front of the wires, wire_thermal fitted on the identification
     record from rest (its GPI at the plain fit's count) and the validation RMS of the whole model: how
     much a delay on top of the wires helps on each record, whatever the greedy rounds find."""
-    from sma_stage.identify.diagnosis import Chain, Validation
+    from sma_stage.identify.chain import Chain, Validation
     from sma_stage.identify.effects import fit_effect, no_effect
     from sma_stage.identify.effects.base import finish_fit
     from sma_stage.identify.effects.delay import EFFECT as DELAY

@@ -8,7 +8,7 @@ when the diagnosis fails does not swallow it."""
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 
@@ -39,3 +39,13 @@ def check_cancelled() -> None:
     """Raise Cancelled when the enclosing cancellable() block's event is set (nothing outside one)."""
     if cancel_requested():
         raise Cancelled("cancelled")
+
+
+Progress = Callable[[str], None] | None  # where an identification reports what it is doing (None: nowhere)
+
+
+def report(progress: Progress, message: str) -> None:
+    """Raise Cancelled when cancelled (check_cancelled), else hand the message to progress (if any)."""
+    check_cancelled()
+    if progress is not None:
+        progress(message)

@@ -15,7 +15,6 @@ or output).
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -24,7 +23,9 @@ from functools import partial
 import numpy as np
 
 from sma_stage.errors import InputError
-from sma_stage.identify.cancel import check_cancelled
+from sma_stage.identify.cancel import Progress, report
+from sma_stage.identify.chain import Chain, Record, Validation, as_record
+from sma_stage.identify.counts import ColdFit, begin_cold_fit, count_by_held_out
 from sma_stage.identify.effects import (
     EFFECT_NAMES,
     EFFECTS,
@@ -32,36 +33,23 @@ from sma_stage.identify.effects import (
     EffectFit,
     NotFitted,
     attempt,
-    check_record,
     fit_effect,
-    lowest_cost,
     no_effect,
     recount_effect,
     refit_effect,
 )
-from sma_stage.identify.fit import (
-    OPERATOR_CANDIDATES,
-    SCREEN_SAMPLES,
-    FitResult,
-    fit_gpi,
-    information_criterion,
-    thinned,
-)
-from sma_stage.identify.metrics import ErrorMetrics, error_metrics
-from sma_stage.identify.residual_tests import ResidualTests, residual_tests
-from sma_stage.identify.start import StartFit, estimate_start, start_fit
-from sma_stage.identify.workers import Pending, Progress, Workers, one_blas_thread
-from sma_stage.model.forward import forward
-from sma_stage.model.identified import IdentifiedModel, Start
-from sma_stage.model.parameters import GPIParameters
+from sma_stage.identify.fit import FitResult, fit_gpi
+from sma_stage.identify.metrics import ErrorMetrics
+from sma_stage.identify.residual_tests import ResidualTests
+from sma_stage.identify.start import StartFit, estimate_start
+from sma_stage.identify.workers import Workers, one_blas_thread
+from sma_stage.model.identified import Start
 
 BIC_MARGIN = 10.0  # "very strong" evidence on the Kass-Raftery scale
 VALIDATION_MARGIN = 0.10  # the validation RMS must fall by at least 10 % in the first round
 LATER_VALIDATION_MARGIN = 0.03  # and by at least 3 % in a later round
 REFINE_SWEEPS = 1  # backfitting sweeps over the added effects after each later round
 EXCLUSIVE = {"thermal_lag": ("wire_thermal",), "wire_thermal": ("thermal_lag",)}  # one thermal reading per model
-COUNT_FIT_MARGIN = 0.10  # operator counts whose identification RMS is within 10 % of the best are admitted
-COUNT_TIE = 0.01  # validation RMS within 1 % of the lowest: the smaller operator count is kept
 RECOUNTED = 2  # accepted candidates (best validation first) whose operator count is chosen again
 # Which residual test points at which effect (the strongest first; ties keep this order).
 POINTERS: dict[str, tuple[str, ...]] = {
@@ -71,8 +59,6 @@ POINTERS: dict[str, tuple[str, ...]] = {
     "drift": ("time",),
     "wire_thermal": ("lagged_input", "input_rate"),
 }
-
-Record = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -166,106 +152,12 @@ def _errors(metrics: ErrorMetrics) -> dict[str, float]:
     return {"rms_pct": metrics.rms_pct, "max_pct": metrics.max_pct}
 
 
-def as_record(data: object, name: str) -> Record:
-    """(t, u, y) from a Series-like object (attributes t, input, output) or a (t, u, y) triple."""
-    if all(hasattr(data, attribute) for attribute in ("t", "input", "output")):
-        t, u, y = data.t, data.input, data.output
-    else:
-        try:
-            t, u, y = data
-        except (TypeError, ValueError):
-            raise InputError(f"{name} data must be a Series or a (t, u, y) triple") from None
-    try:
-        return check_record(t, u, y)
-    except InputError as error:
-        raise InputError(f"{name} data: {error}") from None
-
-
 def rank_candidates(tests: ResidualTests) -> list[str]:
     """Candidates ordered by how far the tests that point at them exceed their bands (strongest first)."""
     def strength(effect: str) -> float:
         return max(tests.checks[name].ratio for name in POINTERS[effect])
 
     return sorted(EFFECT_NAMES, key=lambda effect: -strength(effect))
-
-
-@dataclass(frozen=True)
-class Chain:
-    """The model so far: the plain GPI fit, then each added effect in the order found. Each stage was
-    fitted on the input and output the stages before it make (their input transforms applied in turn,
-    their output offsets taken off); the last one predicts."""
-
-    stages: tuple[EffectFit, ...]
-    base: FitResult = field(repr=False, compare=False)
-
-    @property
-    def effects(self) -> list[str]:
-        """Names of the added effects, in order."""
-        return [stage.effect for stage in self.stages[1:]]
-
-    @property
-    def parameters(self) -> dict[str, float]:
-        """Every added effect's parameters."""
-        return {name: value for stage in self.stages[1:] for name, value in stage.parameters.items()}
-
-    @property
-    def last(self) -> EffectFit:
-        return self.stages[-1]
-
-    @property
-    def composable(self) -> bool:
-        """Whether a further effect can be fitted on top (see the module docstring)."""
-        return self.last.composable
-
-    @property
-    def bic(self) -> float:
-        """BIC on the identification data, counting the parameters of every stage."""
-        earlier = sum(len(stage.parameters) for stage in self.stages[:-1])
-        return information_criterion(self.last.cost, self.last.samples, self.last.parameter_count + earlier)
-
-    @property
-    def model(self) -> IdentifiedModel:
-        """The whole model: the last stage's GPI with every added effect, in the order found."""
-        last = self.last
-        effects = tuple(stage.spec for stage in self.stages[1:])
-        return IdentifiedModel(last.gpi_parameters, last.operators, effects)
-
-    @property
-    def start(self) -> str:
-        """How the identification record starts for this model: the first added effect's start (rest or
-        held; later effects are fitted from the same)."""
-        return self.stages[1].start if len(self.stages) > 1 else "rest"
-
-    def data(self, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(input, output) as an effect added on top sees them: every stage's input transform applied in
-        turn (from the chain's start), every output offset taken off."""
-        v, offset = u, np.zeros_like(t)
-        for stage in self.stages[1:]:
-            spec = stage.spec
-            if spec.role == "input":
-                v = spec.transform(t, v, spec.start_state(t, v, self.start))[0]
-            elif spec.role == "output":
-                offset = offset + spec.offset(t)[0]
-        return v, y - offset
-
-    def predict(self, t: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Output [output unit] of the whole model for the identification record (t [s], u [A]) from its start."""
-        return self.model.predict_from(t, u, Start(self.start))
-
-    def then(self, stage: EffectFit) -> Chain:
-        """This model with one more effect."""
-        return Chain((*self.stages, stage), self.base)
-
-    def without(self, index: int) -> Chain:
-        """This model without stage `index` (an added effect; the last stage keeps its GPI)."""
-        return Chain(self.stages[:index] + self.stages[index + 1:], self.base)
-
-    @property
-    def refittable(self) -> bool:
-        """Whether every added effect can be fitted again on top of the others: they are input
-        transforms that commute (linear, time-invariant: lag, delay) and output offsets, so their order
-        does not matter."""
-        return all(stage.composable for stage in self.stages)
 
 
 @dataclass(frozen=True)
@@ -297,33 +189,6 @@ def judge(delta_bic: float, validation: ErrorMetrics, before: ErrorMetrics,
     if validation.rms_pct > target:
         return False, f"validation RMS {validation.rms_pct:.3g} % is not below {target:.3g} % (-{margin:.0%})"
     return True, f"BIC change {delta_bic:+.1f}, validation RMS {before.rms_pct:.3g} % -> {validation.rms_pct:.3g} %"
-
-
-@dataclass(frozen=True)
-class Validation:
-    """The validation record (t [s], u [A], y) and the sample its errors count from. A separate record
-    (scored_from 0) starts as estimate_start finds for each model; a record that continues the
-    identification record (its errors counted from scored_from) runs from the identification's start."""
-
-    t: np.ndarray
-    u: np.ndarray
-    y: np.ndarray
-    scored_from: int = 0
-
-    def predict(self, model: IdentifiedModel, identification_start: str) -> StartFit:
-        """The model's output over the record, and the start it runs from."""
-        if self.scored_from > 0:
-            return start_fit(model, self.t, self.u, self.y, Start(identification_start))
-        return estimate_start(model, self.t, self.u, self.y)
-
-    def errors(self, predicted: np.ndarray) -> ErrorMetrics:
-        """RMS and max error of a prediction over the scored samples [% of their span]."""
-        return error_metrics(self.y[self.scored_from:], predicted[self.scored_from:])
-
-    def tests(self, predicted: np.ndarray) -> ResidualTests:
-        """The residual tests of a prediction over the scored samples."""
-        k = self.scored_from
-        return residual_tests((self.y - predicted)[k:], self.u[k:], self.t[k:])
 
 
 def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Validation, before: ErrorMetrics, spent_s: float,
@@ -390,16 +255,12 @@ def _recounted(leader: CandidateResult, chain: Chain, ident: Record, valid: Vali
 
 def _job_name(job: tuple) -> str:
     first = job[0]
-    if isinstance(first, int):
-        return f"{first} operators"
     return first if isinstance(first, str) else first.effect
 
 
 def _job_cost(job: tuple) -> float:
-    """About how long a job takes, to hand out the costliest first: an effect's relative_cost, an
-    operator count's count."""
-    first = job[0]
-    return float(first) if isinstance(first, int) else EFFECTS[_job_name(job)].relative_cost
+    """About how long a job takes, to hand out the costliest first: its effect's relative_cost."""
+    return EFFECTS[_job_name(job)].relative_cost
 
 
 def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorMetrics, tests: ResidualTests,
@@ -424,17 +285,17 @@ def _search_round(chain: Chain, ident: Record, valid: Validation, before: ErrorM
     for name, outcome in zip(names, pool.run(_judged, jobs, progress, doing, then, _job_name, _job_cost), strict=True):
         if isinstance(outcome, NotFitted):
             failures[name] = str(outcome)
-            _report(progress, f"{name}: not fitted: {outcome}")
+            report(progress, f"{name}: not fitted: {outcome}")
             continue
         candidates.append(outcome)
-        _report(progress, f"{name}: {outcome.reason}")
+        report(progress, f"{name}: {outcome.reason}")
     if recount:
         leaders = sorted((c for c in candidates if c.accepted), key=lambda c: c.validation.rms_pct)[:RECOUNTED]
         jobs = [(leader, chain, ident, valid, before, margin, v_i, w_i) for leader in leaders]
         again = "choosing the operator count of {} again"
         for leader, outcome in zip(leaders, pool.run(_recounted, jobs, progress, again, name=_job_name, cost=_job_cost), strict=True):
             if isinstance(outcome, NotFitted):
-                _report(progress, f"operator count kept: {outcome}")
+                report(progress, f"operator count kept: {outcome}")
                 continue
             candidates[candidates.index(leader)] = outcome
     accepted = [c for c in candidates if c.accepted]
@@ -464,11 +325,11 @@ def refine(chain: Chain, ident: Record, sweeps: int = REFINE_SWEEPS, progress: P
 
             fit = attempt(name, refitted)
             if isinstance(fit, NotFitted):
-                _report(progress, f"not refitted: {fit}")
+                report(progress, f"not refitted: {fit}")
                 continue
             if fit.cost < chain.last.cost:
                 chain = others.then(fit)
-                _report(progress, f"{name} refitted on top of the others: {fit.parameters}")
+                report(progress, f"{name} refitted on top of the others: {fit.parameters}")
     return chain
 
 
@@ -480,120 +341,9 @@ def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chai
     v_i, w_i = others.data(t_i, u_i, y_i)
     fit = attempt(chain.last.effect, lambda: recount_effect(chain.last, t_i, v_i, w_i, progress))
     if isinstance(fit, NotFitted):
-        _report(progress, f"operator count kept: {fit}")
+        report(progress, f"operator count kept: {fit}")
         return chain
     return chain if fit is chain.last else others.then(fit)
-
-
-def count_by_held_out(chain: Chain, ident: Record, valid: Validation, progress: Progress = None,
-                      cold: bool = True, pool: Workers | None = None, begun: ColdFit | None = None
-                      ) -> tuple[Chain, dict[str, object]]:
-    """The operator count of the model chosen by the identification BIC and the held-out error together:
-    the GPI refitted at every count of OPERATOR_CANDIDATES with the effects held (from the model's GPI and,
-    when cold, from a cold fit of every count, the better kept; on a copy thinned to SCREEN_SAMPLES, the chosen count
-    then refitted on all samples). Every count has the same parameters, so the BIC only ranks their fit
-    to the identification data, where more operators fit a little closer; the held-out error says which
-    of them generalises. The BIC admits the counts whose RMS error there is within COUNT_FIT_MARGIN of
-    the best (a BIC within 2 N ln(1 + COUNT_FIT_MARGIN): a fit that failed is not chosen for luck on the
-    validation record), and of those the lowest validation RMS wins, the smaller count on a near-tie
-    (COUNT_TIE). The counts are fitted in the pool's processes when one is given; `begun`, a cold fit begun
-    earlier (begin_cold_fit), is taken when it was begun on the same data. Returns the
-    chain with that count and the report's "operators" block (the choice, the runner-up, every count's
-    BIC and validation RMS)."""
-    t_i, u_i, y_i = ident
-    v_i, w_i = chain.data(t_i, u_i, y_i)
-    last, unit = chain.last, chain.last.gpi_parameters.output_unit
-    keep = thinned(v_i, SCREEN_SAMPLES)
-    cold_fit = None
-    if cold:
-        ready = begun is not None and begun.fits(v_i, w_i)
-        cold_fit = begun.pending.result() if ready else _cold_fit(v_i, w_i, unit)
-    cold_fits = cold_fit.by_count if isinstance(cold_fit, FitResult) else {}
-    jobs = [(count, chain, (v_i, w_i, y_i), valid, cold_fits.get(count)) for count in OPERATOR_CANDIDATES
-            if count != last.operators]
-    pool = pool or Workers()
-    options: dict[int, Chain] = {last.operators: chain}
-    rows = {last.operators: _count_row(chain, valid)}
-    for (count, *_), outcome in zip(jobs, pool.run(_count_option, jobs, progress, "fitting {}", name=_job_name, cost=_job_cost), strict=True):
-        if isinstance(outcome, str):
-            _report(progress, f"{count} operators: {outcome}")
-            continue
-        options[count], rows[count] = outcome
-    best_bic = min(row["bic"] for row in rows.values())
-    margin = 2.0 * y_i.size * math.log1p(COUNT_FIT_MARGIN)
-    admissible = sorted((count for count, row in rows.items() if row["bic"] <= best_bic + margin),
-                        key=lambda count: (rows[count]["validation_rms_pct"], count))
-    lowest = rows[admissible[0]]["validation_rms_pct"]
-    chosen = min(count for count in admissible if rows[count]["validation_rms_pct"] <= (1.0 + COUNT_TIE) * lowest)
-    runner_up = next((count for count in admissible if count != chosen), None)
-    found_chain = options[chosen]
-    if chosen != last.operators and keep.size < v_i.size:
-        polished = attempt("GPI", lambda: fit_gpi(v_i, w_i, operators=chosen, initial=found_chain.last.gpi_parameters,
-                                                  output_unit=unit))
-        if not isinstance(polished, NotFitted):
-            found_chain = _with_gpi(chain, polished.parameters, chosen, v_i, w_i, y_i)
-    _report(progress, f"operators: {chosen} chosen (runner-up {runner_up}) by BIC and held-out error")
-    return found_chain, {"chosen": chosen, "runner_up": runner_up,
-                         "by_count": {str(count): rows[count] for count in sorted(rows)}}
-
-
-@dataclass(frozen=True)
-class ColdFit:
-    """A cold fit of every operator count (count_by_held_out's) under way on what a chain leaves of the
-    identification record (v, w)."""
-
-    v: np.ndarray
-    w: np.ndarray
-    pending: Pending
-
-    def fits(self, v: np.ndarray, w: np.ndarray) -> bool:
-        """Whether it was begun on these data."""
-        return np.array_equal(self.v, v) and np.array_equal(self.w, w)
-
-
-def begin_cold_fit(v: np.ndarray, w: np.ndarray, unit: str, pool: Workers) -> ColdFit:
-    """count_by_held_out's cold fit of (v, w) begun in the pool's processes (with workers 1: when asked for)."""
-    return ColdFit(v, w, pool.submit(_cold_fit, v, w, unit))
-
-
-def _cold_fit(v: np.ndarray, w: np.ndarray, unit: str) -> FitResult | NotFitted:
-    """A fit of every operator count from cold starts on (v, w) thinned to SCREEN_SAMPLES."""
-    keep = thinned(v, SCREEN_SAMPLES)
-    return attempt("GPI", lambda: fit_gpi(v[keep], w[keep], output_unit=unit))
-
-
-def _count_option(count: int, chain: Chain, data: tuple[np.ndarray, np.ndarray, np.ndarray], valid: Validation,
-                  cold_start: GPIParameters | None, progress: Progress = None) -> tuple[Chain, dict[str, float]] | str:
-    """The chain with its GPI refitted at `count` operators (effects held; from the chain's GPI carried to
-    the count and from cold_start, the better kept, on the SCREEN_SAMPLES copy) and its report row (BIC,
-    validation RMS); why not, when no fit was found. data: (v_i, w_i, y_i), what the chain's effects
-    leave of the identification record (chain.data) and its output."""
-    v_i, w_i, y_i = data
-    last, unit = chain.last, chain.last.gpi_parameters.output_unit
-    keep = thinned(v_i, SCREEN_SAMPLES)
-    carried = last.gpi_parameters.replace(a9=last.gpi_parameters.a9 * max(last.operators - 1, 1) / max(count - 1, 1))
-    tries = [attempt("GPI", lambda initial=initial: fit_gpi(v_i[keep], w_i[keep], operators=count, initial=initial,
-                                                            output_unit=unit))
-             for initial in (carried, cold_start) if initial is not None]
-    found = lowest_cost(fit for fit in tries if not isinstance(fit, NotFitted))
-    if found is None:
-        return "; ".join(str(fit) for fit in tries)
-    option = _with_gpi(chain, found.parameters, count, v_i, w_i, y_i)
-    return option, _count_row(option, valid)
-
-
-def _count_row(option: Chain, valid: Validation) -> dict[str, float]:
-    return {"bic": option.bic, "validation_rms_pct": valid.errors(valid.predict(option.model, option.start).predicted).rms_pct}
-
-
-def _with_gpi(chain: Chain, parameters: GPIParameters, operators: int, v_i: np.ndarray, w_i: np.ndarray,
-              y_i: np.ndarray) -> Chain:
-    """The chain with its last GPI replaced (the effects held), scored on the whole identification record."""
-    predicted = forward(v_i, parameters, operators) + (y_i - w_i)
-    residual = y_i - predicted
-    stage = replace(chain.last, gpi_parameters=parameters, operators=operators, cost=float(residual @ residual),
-                    identification=error_metrics(y_i, predicted))
-    return chain.without(len(chain.stages) - 1).then(stage)
 
 
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,
@@ -629,7 +379,7 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
     validation = Validation(*valid_record, scored_from)
     t_i, u_i, y_i = ident_record
     if base is None:
-        _report(progress, "fitting the plain GPI on the identification data")
+        report(progress, "fitting the plain GPI on the identification data")
         base = fit_gpi(u_i, y_i, operators=operators, output_unit=output_unit, progress=progress)
     chain = Chain((no_effect(t_i, u_i, y_i, base),), base)
     start_before = validation.predict(chain.model, chain.start)
@@ -637,7 +387,7 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
     before = validation.errors(predicted_before)
     tests_before = validation.tests(predicted_before)
     failed = [name for name, check in tests_before.checks.items() if not check.passed]
-    _report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
+    report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
     chain, rounds, begun = _search_rounds(chain, ident_record, validation, before, tests_before, operators is None,
                                           max_rounds, progress, pool)
@@ -699,14 +449,10 @@ def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: 
         if found.winner is None:
             break
         chain, current = found.winner.model, found.winner.validation
-        _report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
+        report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
         if recount and chain.composable:
             chain, _ = count_by_held_out(chain, ident, validation, progress, cold=False, pool=pool)
             current = validation.errors(validation.predict(chain.model, chain.start).predicted)
     return chain, rounds, begun
 
 
-def _report(progress: Progress, message: str) -> None:
-    check_cancelled()
-    if progress is not None:
-        progress(message)

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sma_stage.errors import InputError
+from sma_stage.identify.cancel import report
 from sma_stage.identify.checks import check_data, check_regressors
 from sma_stage.identify.initial_guess import start_points
 from sma_stage.identify.least_squares import TOLERANCE, levenberg_marquardt
@@ -206,7 +207,7 @@ def _survey(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: int
     survey = thinned(u, SURVEY_SAMPLES)
     surveyed = [_glance(u[survey], y[survey], regressors[survey], operators, start, SURVEY_STEPS)
                 for start in starts]
-    _report(progress, f"{operators} operators: surveyed {len(starts)} starts on {survey.size} samples")
+    report(progress, f"{operators} operators: surveyed {len(starts)} starts on {survey.size} samples")
     finalists = sorted(surveyed, key=lambda found: found.cost)[:FINALISTS]
     return [_start_from(found) for found in finalists], sum(found.iterations for found in surveyed)
 
@@ -218,11 +219,6 @@ def _carried(starts: Sequence[GPIParameters], operators: int, new_operators: int
         return list(starts)
     ratio = max(operators - 1, 1) / max(new_operators - 1, 1)
     return [params.replace(a9=params.a9 * ratio) for params in starts] + list(starts)
-
-
-def _report(progress: Callable[[str], None] | None, text: str) -> None:
-    if progress is not None:
-        progress(text)
 
 
 def _starts(u: np.ndarray, y: np.ndarray, operators: int, starts: int | Sequence[GPIParameters] | None,
@@ -256,7 +252,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
             found = _search(u[screen], y[screen], regressors[screen], operators, candidate,
                             max_iterations if whole else SCREEN_MAX_ITERATIONS, tolerance=tolerance, held=held)
             spent += found.iterations
-            _report(progress, f"{operators} operators, finalist {number}/{len(starts)} on {screen.size} "
+            report(progress, f"{operators} operators, finalist {number}/{len(starts)} on {screen.size} "
                     f"samples: cost {found.cost:.6g}")
             if best is None or found.cost < best.cost:
                 best = found
@@ -264,7 +260,7 @@ def _fit_count(u: np.ndarray, y: np.ndarray, regressors: np.ndarray, operators: 
             return best, spent
         start = _start_from(best)
     found = _search(u, y, regressors, operators, start, max_iterations, progress, tolerance, held)
-    _report(progress, f"{operators} operators on {u.size} samples: cost {found.cost:.6g}, "
+    report(progress, f"{operators} operators on {u.size} samples: cost {found.cost:.6g}, "
             f"{found.iterations} iterations")
     return found, spent + found.iterations
 

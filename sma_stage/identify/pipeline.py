@@ -5,13 +5,14 @@ node's `~/refit`, the demo and the benchmarks all call `identify_recording`.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from sma_stage.control.compensator import compensation_notes
 from sma_stage.errors import InputError
+from sma_stage.identify.cancel import Progress
 from sma_stage.identify.checks import MIN_SAMPLES
 from sma_stage.identify.diagnosis import Diagnosis, diagnose
 from sma_stage.identify.families import (
@@ -37,7 +38,6 @@ FIT_SAMPLES = 20_000  # a longer record is fitted on a copy thinned to about thi
 THINNING_COST_WARNING = 1.25  # a warning when the full-rate held-out RMS exceeds the thinned one by this factor
 GPI_MODEL_FILE = "model_gpi.yaml"  # gpi_tool writes the GPI family's model here when another family is chosen
 
-Progress = Callable[[str], None] | None
 
 
 @dataclass(frozen=True)

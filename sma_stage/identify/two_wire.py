@@ -21,7 +21,7 @@ from sma_stage.errors import InputError
 from sma_stage.identify._two_wire_sensitivity import rest_with_sensitivities, run_with_sensitivities
 from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.checks import check_data
-from sma_stage.identify.diagnosis import COUNT_FIT_MARGIN
+from sma_stage.identify.counts import COUNT_FIT_MARGIN
 from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.workers import Pending, Workers

@@ -17,14 +17,13 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from sma_stage.errors import InputError
-from sma_stage.identify.cancel import check_cancelled
+from sma_stage.identify.cancel import Progress, check_cancelled, report
 from sma_stage.identify.fit import fit_gpi
 from sma_stage.model.effects import EFFECT_KINDS, Effect
 from sma_stage.model.effects import PARAMETERS as EFFECT_PARAMETERS
 from sma_stage.model.identified import IdentifiedModel
 
 CANCEL_POLL_S = 0.05  # how often a wait for the worker processes looks for a cancellation [s]
-Progress = Callable[[str], None] | None
 
 
 def _first_item(job: tuple) -> str:
@@ -94,13 +93,13 @@ class Workers:
         if self.workers == 1 or len(jobs) < 2:
             results = []
             for job in jobs:
-                _report(progress, doing.format(name(job)))
+                report(progress, doing.format(name(job)))
                 results.append(_as_in_a_worker(function, *job, progress))
             if then is not None:
                 then()
             return results
         executor = self._started()
-        _report(progress, doing.format(", ".join(name(job) for job in jobs)) + f" in {self.workers} processes")
+        report(progress, doing.format(", ".join(name(job) for job in jobs)) + f" in {self.workers} processes")
         costliest_first = sorted(range(len(jobs)), key=lambda index: -cost(jobs[index]))
         futures = {index: executor.submit(function, *jobs[index]) for index in costliest_first}
         if then is not None:
@@ -254,7 +253,3 @@ def warm_up() -> None:
         IdentifiedModel(found.parameters, 5, (effect,)).predict(t_s, u)
 
 
-def _report(progress: Progress, message: str) -> None:
-    check_cancelled()
-    if progress is not None:
-        progress(message)

@@ -18,6 +18,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from sma_stage.errors import InputError
+from sma_stage.identify.cancel import Progress, report
 from sma_stage.identify.fit import (
     PROFILE_TOLERANCE,
     TOLERANCE,
@@ -44,7 +45,6 @@ SCREEN_SAMPLES = 3000  # the fine search on one of about this many; the GPI is t
 NARROW_FACTOR = 1.1  # after a change of operator count, x is searched again within x / 1.1 .. 1.1 x
 REFIT_FACTOR = 1.5  # backfitting searches x again within x / 1.5 .. 1.5 x (the other effects moved a little)
 
-Progress = Callable[[str], None] | None
 Fitted = TypeVar("Fitted")
 # What a fit that cannot be had raises: refused data (InputError) or a numerical failure on the way
 # (an overflow, a singular matrix, scipy refusing a non-finite residual).
@@ -241,13 +241,6 @@ def finish_fit(effect: str, values: dict[str, float], gpi: GPIParameters, operat
         identification=error_metrics(y, predicted), cost=float(residual @ residual), samples=int(y.size),
         parameter_count=int(parameter_count), seconds=time.perf_counter() - started, start=start,
     )
-
-
-def report(progress: Progress, message: str) -> None:
-    if progress is not None:
-        progress(message)
-
-
 
 
 class Candidate:
