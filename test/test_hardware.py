@@ -13,7 +13,8 @@ from scpi_server import LoopbackRig
 from sma_stage.errors import InputError
 from sma_stage.plant import Effects, StageConfig
 from sma_stage.plant.hardware import HardwareError, SimulatedHardware, wire_commands
-from sma_stage.plant.visa import I2tBudget, VisaStage, bridge_config, load_bridge_config
+from sma_stage.plant.visa import I2tBudget, VisaStage
+from sma_stage.plant.visa_config import bridge_config, load_bridge_config
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "config" / "hardware_example.yaml"

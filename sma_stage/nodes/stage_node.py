@@ -115,7 +115,8 @@ def make_hardware(values: dict[str, object]) -> StageHardware:
     if check_choice("backend", str(values["backend"]), BACKENDS) == "sim":
         effects = Effects(**{item.name: values[item.name] for item in fields(Effects)})
         return SimulatedHardware(StageConfig(), effects, int(values["seed"]))
-    from sma_stage.plant.visa import VisaStage, load_bridge_config
+    from sma_stage.plant.visa import VisaStage
+    from sma_stage.plant.visa_config import load_bridge_config
 
     if not values["hardware_file"]:
         raise InputError("parameter 'hardware_file': backend 'visa' needs the instruments' YAML file "
