@@ -5,14 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sma_stage.demo import (
-    DEFAULT_MODEL_FILE,
-    compensation_demo,
-    identification_loop,
-    main,
-    save_tracking_plots,
-)
+from sma_stage.demo import DEFAULT_MODEL_FILE, compensation_demo, main
 from sma_stage.io import read_bag
+from sma_stage.nodes.end_to_end import identification_loop, save_tracking_plots
 
 
 def test_exact_inverse_removes_the_hysteresis_that_a_linear_map_leaves(tmp_path):
@@ -49,7 +44,7 @@ def test_the_demo_picture_shows_the_identified_loop_from_the_session_bag(tmp_pat
 def test_the_demo_says_which_family_the_refit_deployed_and_passes_its_families_to_the_node(tmp_path):
     """`--families` reaches the identification node's `families`; with a two-wire model chosen the demo's line
     names it and every family's held-out RMS (it printed the GPI's effects and failed on a two-wire report)."""
-    from sma_stage.demo import EndToEndSettings, describe_diagnosis, node_parameters
+    from sma_stage.nodes.end_to_end import EndToEndSettings, describe_diagnosis, node_parameters
 
     settings = EndToEndSettings(families=("gpi", "two_wire"))
     assert node_parameters(settings, tmp_path)["identification_node"]["families"] == ["gpi", "two_wire"]

@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from sma_stage.demo import default_domain_id
+from sma_stage.nodes.end_to_end import default_domain_id
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, wait_for
 
 TIME_SCALE = 125.0   # simulated s per wall s
