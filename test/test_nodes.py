@@ -852,17 +852,17 @@ def test_identification_node_loads_the_watch_and_refit_kernels_before_it_is_read
     script = """
 import numba, rclpy
 from rclpy.context import Context
-from sma_stage.identify import watch
+from sma_stage.identify import path_memory, watch
 from sma_stage.model import _kernels
 from sma_stage.nodes.identification_node import IdentificationNode
 context = Context()
 rclpy.init(context=context, domain_id=int(__import__("os").environ["ROS_DOMAIN_ID"]))
 node = IdentificationNode(context=context)
-kernels = [k for module in (watch, _kernels) for k in vars(module).values() if isinstance(k, numba.core.registry.CPUDispatcher)]
+kernels = [k for module in (watch, path_memory, _kernels) for k in vars(module).values() if isinstance(k, numba.core.registry.CPUDispatcher)]
 from sma_stage.identify import _sensitivity
 from sma_stage.model import effects
 refit = (_sensitivity.play_sensitivities, effects._lag_run, effects._rate_output)  # what the refit calls from Python
-print(len(watch._low_passes.signatures), len(watch._revisits.signatures), sum(bool(k.signatures) for k in kernels),
+print(len(path_memory._low_passes.signatures), len(path_memory._revisits.signatures), sum(bool(k.signatures) for k in kernels),
       sum(not k.signatures for k in refit))
 node.destroy_node()
 rclpy.shutdown(context=context)

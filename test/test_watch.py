@@ -9,18 +9,15 @@ import pytest
 from test_two_wire import example_model
 
 from sma_stage.errors import InputError
-from sma_stage.identify.watch import (
+from sma_stage.identify.path_memory import (
     SCALE_CONFIDENCE,
-    CusumOfWindows,
-    DriftTest,
-    ModelWatch,
-    RecentRecord,
     _nearest_kept,
     in_a_row_factor,
     lag_one_correlation,
     rms_without_outliers,
     scale_confidence_factor,
 )
+from sma_stage.identify.watch import CusumOfWindows, DriftTest, ModelWatch, RecentRecord
 
 
 def windows_to_alarm(levels: np.ndarray, test: DriftTest, held_out: float | None = None) -> list[int]:
