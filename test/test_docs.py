@@ -12,7 +12,7 @@ pytest.importorskip("rclpy")
 
 from sma_stage.nodes.compensator_node import COMPENSATOR_PARAMS  # noqa: E402
 from sma_stage.nodes.identification.params import IDENTIFICATION_PARAMS  # noqa: E402
-from sma_stage.nodes.stage_node import STAGE_PARAMS  # noqa: E402
+from sma_stage.nodes.stage_settings import STAGE_PARAMS  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
