@@ -805,7 +805,7 @@ def test_compensator_default_model_is_the_shipped_model_file_identified_from_the
     compensator = ros.add(CompensatorNode(context=ros.context))
     assert compensator.model == load_model_file(REPO / "config" / "model_default.yaml")
     assert compensator.model.effect_names == ["thermal_lag"] and compensator.model.state is None
-    assert compensator.values["feedback"], "the default holds a setpoint: the PI loop is on"
+    assert compensator.settings.feedback, "the default holds a setpoint: the PI loop is on"
     tau = compensator.model.effect("thermal_lag").parameters["tau_s"]
     lag_left, slew_s = tau / 3.0, 5.0 / (2.0 * 1.0)  # the lead limit 3; 5 A at 1 A/s: 2.5 s to move 2.5 A
     closed_loop = max(0.7 * lag_left, slew_s)
@@ -1192,7 +1192,7 @@ def test_the_compensator_keeps_silent_while_the_excitation_owns_current_cmd(ros)
     probe.setpoint_pub.publish(Float64(data=1e-4))
     wait_until(lambda: len(published) >= 5, 5.0, "the compensator republishing its command")
     assert ros.call(probe.node, Trigger, "identification/excite").success
-    wait_until(lambda: not compensator.values["enabled"], 5.0, "the compensator to be paused")
+    wait_until(lambda: not compensator.settings.enabled, 5.0, "the compensator to be paused")
     silent_from = len(published)
     time.sleep(0.5)
     assert len(published) == silent_from, "the compensator published while the excitation ran"
@@ -1200,7 +1200,7 @@ def test_the_compensator_keeps_silent_while_the_excitation_owns_current_cmd(ros)
     time.sleep(0.2)
     assert len(published) == silent_from and compensator.setpoint_m is None, "a setpoint is ignored meanwhile"
     wait_until(lambda: not identification.exciting, 10.0, "the excitation to end")
-    wait_until(lambda: compensator.values["enabled"], 5.0, "the compensator to be enabled again")
+    wait_until(lambda: compensator.settings.enabled, 5.0, "the compensator to be enabled again")
     time.sleep(0.2)
     assert len(published) == silent_from, "enabled again, it waits for a new setpoint"
     probe.setpoint_pub.publish(Float64(data=1e-4))

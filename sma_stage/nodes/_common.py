@@ -12,8 +12,9 @@ import re
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, fields, make_dataclass
+from typing import Self
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
@@ -104,6 +105,29 @@ def declare_all(node: Node, params: Sequence[Param]) -> dict[str, object]:
         except ParameterException as error:
             raise InputError(f"parameter '{param.name}' refused: {_reason(error)}") from None
     return {param.name: node.get_parameter(param.name).value for param in params}
+
+
+class Settings:
+    """Base of a node's settings (see settings_type): its parameters' values, each cast once to its declared type
+    (string arrays as tuples), read as attributes; frozen, so `changed` gives a new one."""
+
+    @classmethod
+    def of(cls, values: Mapping[str, object]) -> Self:
+        """The settings from parameter values by name (declare_all's, or a parameter event's)."""
+        return cls(**{item.name: item.type(values[item.name]) for item in fields(cls)})
+
+    def changed(self, changes: Mapping[str, object]) -> Self:
+        """These settings with some values changed (by parameter name)."""
+        return self.of({**asdict(self), **changes})
+
+
+def settings_type(name: str, params: Sequence[Param]) -> type[Settings]:
+    """A frozen dataclass of Settings with one field per parameter, named as it and typed as its default."""
+    def value_type(default: object) -> type:
+        return tuple if isinstance(default, list) else type(default)
+
+    return make_dataclass(name, [(param.name, value_type(param.default)) for param in params], bases=(Settings,),
+                          frozen=True)
 
 
 def _as_double(parameter: Parameter) -> Parameter:

@@ -73,6 +73,7 @@ from sma_stage.nodes._common import (
     note_started,
     quiet_on_shutdown,
     run_node,
+    settings_type,
 )
 from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 from sma_stage.nodes.model_watch import model_message
@@ -116,20 +117,21 @@ COMPENSATOR_PARAMS = [
           "and the rate limit count stage seconds", 0.001, 10000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
 ]
+CompensatorSettings = settings_type("CompensatorSettings", COMPENSATOR_PARAMS)
 
 
-def model_from(values: dict[str, object], changed: str | None = None) -> tuple[AnyModel, str]:
+def model_from(values: CompensatorSettings, changed: str | None = None) -> tuple[AnyModel, str]:
     """(the model the parameter values name, a one-line description of where it came from): `changed`
     (a model source just set) first, else model, else model_file, else the shipped default."""
-    order = [changed] if changed in MODEL_SOURCES and values[changed] else []
-    order += [name for name in ("model", "model_file") if values[name] and name not in order]
+    order = [changed] if changed in MODEL_SOURCES and getattr(values, changed) else []
+    order += [name for name in ("model", "model_file") if getattr(values, name) and name not in order]
     source = order[0] if order else None
     if source == "model":
         try:
-            return any_model_from_yaml_text(str(values["model"])), "the pushed model"
+            return any_model_from_yaml_text(values.model), "the pushed model"
         except InputError as error:
             raise InputError(f"parameter model: {error}") from None
-    path = str(values["model_file"]) if source == "model_file" else str(DEFAULT_MODEL_FILE)
+    path = values.model_file if source == "model_file" else str(DEFAULT_MODEL_FILE)
     return load_any_model_file(path), path
 
 
@@ -148,13 +150,13 @@ class CompensatorNode(Node):
         note_started(self)
         self._lock = threading.RLock()
         try:
-            self.values = declare_all(self, COMPENSATOR_PARAMS)
+            self.settings = CompensatorSettings.of(declare_all(self, COMPENSATOR_PARAMS))
             # with use_sim_time the node clock is the stage's: time_scale (shared with the stage in
             # stage_and_compensator) is not applied
-            self.time_scale = 1.0 if self.get_parameter("use_sim_time").value else float(self.values["time_scale"])
-            self.period_estimate_s = self.tuned_period_s = self.time_scale / float(self.values["rate_hz"])
-            model, self.model_source = model_from(self.values)
-            self.core = self.build_core(model, self.values)
+            self.time_scale = 1.0 if self.get_parameter("use_sim_time").value else self.settings.time_scale
+            self.period_estimate_s = self.tuned_period_s = self.time_scale / self.settings.rate_hz
+            model, self.model_source = model_from(self.settings)
+            self.core = self.build_core(model, self.settings)
         except InputError:
             self.destroy_node()
             raise
@@ -178,30 +180,30 @@ class CompensatorNode(Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._reported_clipped = 0
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics), clock=self.steady)
-        self.period_s = 1.0 / float(self.values["rate_hz"])
+        self.period_s = 1.0 / self.settings.rate_hz
         self.create_timer(self.period_s, quiet_on_shutdown(self, self.on_tick), clock=self.control_clock())
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
 
-    def settings(self, model: AnyModel, values: dict[str, object]) -> dict[str, float]:
+    def loop_settings(self, model: AnyModel, values: CompensatorSettings) -> dict[str, float]:
         """The control core's loop settings from the node's parameter values and the model (InputError when
         one is unusable): kp and ki (derived or manual), lead limits, deadband, rate limit."""
-        if values["tuning"] not in TUNINGS:
-            raise InputError(f"tuning must be one of {', '.join(TUNINGS)}, got {values['tuning']!r}")
-        if values["tuning"] == "imc":
-            gains = imc_gains(model, self.tuned_period_s, float(values["lead_limit"]),
-                              slew_time_s(float(values["max_current"]), float(values["max_current_rate"])))
+        if values.tuning not in TUNINGS:
+            raise InputError(f"tuning must be one of {', '.join(TUNINGS)}, got {values.tuning!r}")
+        if values.tuning == "imc":
+            gains = imc_gains(model, self.tuned_period_s, values.lead_limit,
+                              slew_time_s(values.max_current, values.max_current_rate))
         else:
-            gains = checked_gains(values["kp"], values["ki"])
-        return {**gains, "lead_limit": float(values["lead_limit"]),
-                "feedforward_lead_limit": float(values["feedforward_lead_limit"]),
-                "feedforward_step_lead_limit": float(values["feedforward_step_lead_limit"]),
-                "deadband_m": float(values["deadband"]),
-                "max_rate_a_per_s": float(values["max_current_rate"])}
+            gains = checked_gains(values.kp, values.ki)
+        return {**gains, "lead_limit": values.lead_limit,
+                "feedforward_lead_limit": values.feedforward_lead_limit,
+                "feedforward_step_lead_limit": values.feedforward_step_lead_limit,
+                "deadband_m": values.deadband,
+                "max_rate_a_per_s": values.max_current_rate}
 
-    def build_core(self, model: AnyModel, values: dict[str, object]) -> Compensator:
+    def build_core(self, model: AnyModel, values: CompensatorSettings) -> Compensator:
         """A control core for the model with the node's settings (InputError when either is unusable)."""
-        return Compensator(model, float(values["max_current"]), str(values["inverse_method"]),
-                           **self.settings(model, values))
+        return Compensator(model, values.max_current, values.inverse_method,
+                           **self.loop_settings(model, values))
 
     @property
     def model(self) -> AnyModel:
@@ -220,13 +222,13 @@ class CompensatorNode(Node):
 
     def describe_model(self) -> str:
         """One line naming the model in force."""
-        loop = (f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s ({self.values['tuning']})"
-                if self.values["feedback"] else "feedforward")
+        loop = (f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s ({self.settings.tuning})"
+                if self.settings.feedback else "feedforward")
         return f"{self.core.drive.describe()} from {self.model_source}, {loop}"
 
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         """Validate a parameter change as a whole; swap in the new model when it changed."""
-        candidate = {**self.values, **{change.name: change.value for change in changes}}
+        candidate = self.settings.changed({change.name: change.value for change in changes})
         names = {change.name for change in changes}
         rebuild = bool(names & set(REBUILD_PARAMETERS))
         try:
@@ -235,22 +237,22 @@ class CompensatorNode(Node):
                 model, source = model_from(candidate, changed)
                 core = self.build_core(model, candidate)
             else:
-                settings = self.settings(self.model, candidate)
+                loop = self.loop_settings(self.model, candidate)
         except InputError as error:
             return SetParametersResult(successful=False, reason=str(error))
         except Exception as error:  # noqa: BLE001 -- a bug met by a new model is a refusal, not a dead node
             return SetParametersResult(successful=False, reason=unexpected(error))
         with self._lock:
-            if candidate["enabled"] != self.values["enabled"]:
+            if candidate.enabled != self.settings.enabled:
                 self.setpoint_m = None
                 self.core.reset()
-            self.values = candidate
+            self.settings = candidate
             if rebuild:
                 self.swap_core(core)
                 self.model_source = source
                 self.publish_model()
             else:
-                for name, value in settings.items():
+                for name, value in loop.items():
                     setattr(self.core, name, value)
         if rebuild:
             self.get_logger().info(f"model updated: {self.describe_model()}")
@@ -258,11 +260,11 @@ class CompensatorNode(Node):
 
     def on_reload(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Read model_file again; a bad file leaves the model in force and answers why."""
-        path = str(self.values["model_file"])
+        path = self.settings.model_file
         response.success, response.message = False, "parameter model_file is empty: nothing to reload"
         if path:
             try:
-                core = self.build_core(load_any_model_file(path), self.values)
+                core = self.build_core(load_any_model_file(path), self.settings)
             except InputError as error:
                 response.message = str(error)
             except Exception as error:  # noqa: BLE001 -- as in on_set_parameters
@@ -282,7 +284,7 @@ class CompensatorNode(Node):
     def swap_core(self, core: Compensator) -> None:
         """Put a new core in force (call with the lock held): while commanding, bumplessly (its loop continues the
         old one's: the current moves from the last command at most max_current_rate)."""
-        if self.setpoint_m is not None and self.values["enabled"]:
+        if self.setpoint_m is not None and self.settings.enabled:
             core.continue_from(self.core)
         self.core = core
 
@@ -293,7 +295,7 @@ class CompensatorNode(Node):
             self.warnings.warn("setpoint", f"refused a non-finite setpoint ({value})")
             return
         with self._lock:
-            if not self.values["enabled"]:
+            if not self.settings.enabled:
                 self.warnings.warn("disabled", "setpoint ignored: enabled is false (another node owns current_cmd)")
                 return
             self.setpoint_m = value
@@ -306,7 +308,7 @@ class CompensatorNode(Node):
         with self._lock:
             now_ns = self.get_clock().now().nanoseconds
             previous_ns, self._last_applied_ns = self._last_applied_ns, now_ns
-            if self.setpoint_m is not None and self.values["enabled"] or not math.isfinite(value):
+            if self.setpoint_m is not None and self.settings.enabled or not math.isfinite(value):
                 return
             dt_s = max((now_ns - previous_ns) * 1e-9, 0.0) * self.time_scale if previous_ns is not None else 0.0
             self.core.follow_applied(value, dt_s)
@@ -314,7 +316,7 @@ class CompensatorNode(Node):
 
     def on_joint_states(self, message: JointState) -> None:
         """Keep the latest measured position [m]."""
-        index = joint_index(message, str(self.values["joint_name"]))
+        index = joint_index(message, self.settings.joint_name)
         if index is not None and math.isfinite(message.position[index]):
             self.measured_m = float(message.position[index])
             self._measured_at = self.steady.now()
@@ -332,9 +334,9 @@ class CompensatorNode(Node):
             previous_ns, self._last_tick_ns = self._last_tick_ns, now_ns
             if previous_ns is not None and now_ns > previous_ns:
                 self.follow_control_period((now_ns - previous_ns) * 1e-9 * self.time_scale)
-            if self.setpoint_m is None or not self.values["enabled"]:
+            if self.setpoint_m is None or not self.settings.enabled:
                 return
-            if self.values["feedback"] or self.core.drive.evolves:
+            if self.settings.feedback or self.core.drive.evolves:
                 self.publish_command(self.compute_command(self.elapsed_s()))
             else:
                 self.publish_command(self.command_a)
@@ -344,7 +346,7 @@ class CompensatorNode(Node):
         node-clock seconds times time_scale); with tuning imc, derive the gains
         again when it has moved by more than PERIOD_TOLERANCE from the period they were derived for."""
         self.period_estimate_s += PERIOD_SMOOTHING * (min(dt_s, 10.0 * self.period_estimate_s) - self.period_estimate_s)
-        if self.values["tuning"] != "imc" or abs(self.period_estimate_s / self.tuned_period_s - 1.0) <= PERIOD_TOLERANCE:
+        if self.settings.tuning != "imc" or abs(self.period_estimate_s / self.tuned_period_s - 1.0) <= PERIOD_TOLERANCE:
             return
         self.tuned_period_s = self.period_estimate_s
         slew_s = slew_time_s(self.core.max_current_a, self.core.max_rate_a_per_s)
@@ -372,14 +374,14 @@ class CompensatorNode(Node):
     def compute_command(self, dt_s: float) -> float:
         """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral), held for one control
         period (the lead's step)."""
-        measured = self.measured_m if self.values["feedback"] else None
+        measured = self.measured_m if self.settings.feedback else None
         age_s = self.measurement_age_s()
-        if self.values["feedback"] and measured is None:
+        if self.settings.feedback and measured is None:
             self.warnings.warn("no_measurement", "feedback is on but no joint_states has come: current_cmd "
                                f"{self.command_a:g} A from the model alone (feedforward)")
-        if measured is not None and age_s > float(self.values["measurement_timeout"]):
+        if measured is not None and age_s > self.settings.measurement_timeout:
             self.warnings.warn("stale", f"no joint_states for {age_s:.3g} s (measurement_timeout "
-                               f"{self.values['measurement_timeout']:g} s): current_cmd held at {self.command_a:g} A")
+                               f"{self.settings.measurement_timeout:g} s): current_cmd held at {self.command_a:g} A")
             return self.command_a
         try:
             current = self.core.command(self.setpoint_m, measured, dt_s, hold_s=self.period_estimate_s)
@@ -389,23 +391,23 @@ class CompensatorNode(Node):
         if self.core.drive.out_of_reach:
             self.clipped_count += 1
             self.warnings.warn("clipped", f"target {self.core.target_m:.4g} m is beyond the model's reach within "
-                                  f"+-{self.values['max_current']:g} A: current at its limit")
+                                  f"+-{self.settings.max_current:g} A: current at its limit")
         return current
 
     def diagnostic_status(self) -> DiagnosticStatus:
         """The loop's health as one DiagnosticStatus: WARN when feedback is on and joint_states is missing or
         older than measurement_timeout, or when targets were beyond the model's reach since the last status;
         else OK (running, waiting for a setpoint, or paused while another node owns current_cmd)."""
-        age_s, timeout = self.measurement_age_s(), float(self.values["measurement_timeout"])
+        age_s, timeout = self.measurement_age_s(), self.settings.measurement_timeout
         clipped = self.clipped_count - self._reported_clipped
         level, text = DiagnosticStatus.OK, "running"
-        if not self.values["enabled"]:
+        if not self.settings.enabled:
             text = "paused: enabled is false (another node owns current_cmd)"
         elif self.setpoint_m is None:
             text = "waiting for a setpoint"
-        elif self.values["feedback"] and self.measured_m is None:
+        elif self.settings.feedback and self.measured_m is None:
             level, text = DiagnosticStatus.WARN, "feedback is on but no joint_states has come: feedforward only"
-        elif self.values["feedback"] and age_s > timeout:
+        elif self.settings.feedback and age_s > timeout:
             level, text = DiagnosticStatus.WARN, f"no joint_states for {age_s:.3g} s: current_cmd held"
         elif clipped:
             level, text = DiagnosticStatus.WARN, f"{clipped} targets beyond the model's reach: current at its limit"
@@ -420,8 +422,8 @@ class CompensatorNode(Node):
             "ki_per_s": self.core.ki,
             "control_period_s": round(self.period_estimate_s, 4),
             "targets_beyond_reach": self.clipped_count,
-            "feedback": self.values["feedback"],
-            "enabled": self.values["enabled"],
+            "feedback": self.settings.feedback,
+            "enabled": self.settings.enabled,
         }
         return DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: compensator", message=text,
                                 hardware_id="sma_stage compensator",

@@ -81,6 +81,7 @@ from sma_stage.nodes.identification.models import ModelsRoom
 from sma_stage.nodes.identification.params import (
     DIAGNOSTICS_PERIOD_S,
     IDENTIFICATION_PARAMS,
+    IdentificationSettings,
     check_drift_settings,
     check_storage,
 )
@@ -102,56 +103,56 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
         super().__init__(self.NODE_NAME, **node_options)
         note_started(self)
         try:
-            self.values = declare_all(self, IDENTIFICATION_PARAMS)
-            check_storage(str(self.values["bag_storage"]))
-            check_families(list(self.values["families"]))
-            check_drift_settings(self.values)
-            self.open_bag(str(self.values["record_bag"]), str(self.values["bag_storage"]),
-                          bool(self.values["bag_overwrite"]))
+            self.settings = IdentificationSettings.of(declare_all(self, IDENTIFICATION_PARAMS))
+            check_storage(self.settings.bag_storage)
+            check_families(self.settings.families)
+            check_drift_settings(self.settings)
+            self.open_bag(self.settings.record_bag, self.settings.bag_storage,
+                          self.settings.bag_overwrite)
         except InputError:
             self.destroy_node()
             raise
-        self.inputs: deque[tuple[int, float]] = deque(maxlen=int(self.values["max_samples"]))
-        self.outputs: deque[tuple[int, int, float]] = deque(maxlen=int(self.values["max_samples"]))
+        self.inputs: deque[tuple[int, float]] = deque(maxlen=self.settings.max_samples)
+        self.outputs: deque[tuple[int, int, float]] = deque(maxlen=self.settings.max_samples)
         self.excite_start_ns: int | None = None
-        self.excite_duration_s = float(self.values["excite_duration"])
+        self.excite_duration_s = self.settings.excite_duration
         self.excite_timer = None
         self.record_until_ns: int | None = None  # set when an excitation ends with freeze_after_excite
         self.refitting = False
         self.last_report: dict | None = None
-        self.history = ModelHistory(int(self.values["model_history"]))
+        self.history = ModelHistory(self.settings.model_history)
         self._push_reason: str | None = None  # why this node pushed the model the compensator publishes next
         self._refit_after_excitation = False
         self._drift_refit_from_s: float | None = None  # on_drift refit: fit the recent record from here once it is long
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
         self.report_pub = self.create_publisher(String, "~/report", REPORT_QOS)
-        self.create_subscription(Float64, str(self.values["input_topic"]), self.on_command, RECORD_COMMAND_QOS)
+        self.create_subscription(Float64, self.settings.input_topic, self.on_command, RECORD_COMMAND_QOS)
         self.create_subscription(JointState, "joint_states", self.on_joint_states, RECORD_STATE_QOS)
         self.create_service(Trigger, "~/excite", self.on_excite)
         self.create_service(Trigger, "~/clear", self.on_clear)
         self.create_service(Trigger, "~/abort_excitation", self.on_abort_excitation)
         self.push_client = self.create_client(
-            SetParametersAtomically, f"{self.values['compensator_name']}/set_parameters_atomically")
+            SetParametersAtomically, f"{self.settings.compensator_name}/set_parameters_atomically")
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics))
         self.watch: WatchChannel | None = None
-        if self.values["watch"]:
+        if self.settings.watch:
             test = DriftTest(
-                window_s=float(self.values["watch_window"]), allowance=float(self.values["watch_allowance"]),
-                threshold=float(self.values["watch_threshold"]),
-                calibration_windows=int(self.values["watch_calibration_windows"]),
-                warmup_windows=int(self.values["watch_warmup_windows"]),
-                shift_allowance=float(self.values["watch_shift_allowance"]),
-                shift_threshold=float(self.values["watch_shift_threshold"]),
-                path_radius=float(self.values["watch_path_radius"]),
-                bias_allowance=float(self.values["watch_bias_allowance"]),
-                bias_threshold=float(self.values["watch_bias_threshold"]))
-            self.watch = WatchChannel(self, test, float(self.values["excite_time_scale"]),
-                                      str(self.values["joint_name"]), float(self.values["watch_record"]),
+                window_s=self.settings.watch_window, allowance=self.settings.watch_allowance,
+                threshold=self.settings.watch_threshold,
+                calibration_windows=self.settings.watch_calibration_windows,
+                warmup_windows=self.settings.watch_warmup_windows,
+                shift_allowance=self.settings.watch_shift_allowance,
+                shift_threshold=self.settings.watch_shift_threshold,
+                path_radius=self.settings.watch_path_radius,
+                bias_allowance=self.settings.watch_bias_allowance,
+                bias_threshold=self.settings.watch_bias_threshold)
+            self.watch = WatchChannel(self, test, self.settings.excite_time_scale,
+                                      self.settings.joint_name, self.settings.watch_record,
                                       self.on_drift)
             self.create_timer(WATCH_PERIOD_S, quiet_on_shutdown(self, self.on_watch_tick))
-        self.create_subscription(String, f"{str(self.values['compensator_name']).rstrip('/')}/model",
+        self.create_subscription(String, f"{self.settings.compensator_name.rstrip('/')}/model",
                                  self.on_model_in_force, REPORT_QOS)
         # The refit's kernels load (or build, seconds on a cold numba cache) now: in the refit's lowered-priority
         # thread a build beside CPU-bound work held a stop for over 5 s.
@@ -177,7 +178,7 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
             self.get_logger().warning(
                 f"{len(leftovers)} unfinished bag(s) of {path} from a recording that was killed, kept as they are "
                 f"(the storage file up to the kill, no metadata.yaml): {', '.join(map(str, leftovers))}")
-        return BagThread(Path(path), storage, overwrite, str(self.values["input_topic"]),
+        return BagThread(Path(path), storage, overwrite, self.settings.input_topic,
                          on_failure=self.get_logger().error)
 
     def close_bag(self) -> None:
@@ -193,21 +194,21 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
     def on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         """Check changes; a new record_bag starts the new bag, then finishes the current one (a bag that cannot
         be started is refused and the current one records on)."""
-        candidate = {**self.values, **{change.name: change.value for change in changes}}
+        candidate = self.settings.changed({change.name: change.value for change in changes})
         try:
-            check_storage(str(candidate["bag_storage"]))
-            check_families(list(candidate["families"]))
+            check_storage(candidate.bag_storage)
+            check_families(candidate.families)
             check_drift_settings(candidate)
-            switch = candidate["record_bag"] != self.values["record_bag"]
+            switch = candidate.record_bag != self.settings.record_bag
             if switch:
-                started = self.new_recorder(str(candidate["record_bag"]), str(candidate["bag_storage"]),
-                                            bool(candidate["bag_overwrite"]))
+                started = self.new_recorder(candidate.record_bag, candidate.bag_storage,
+                                            candidate.bag_overwrite)
         except (InputError, OSError) as error:
             return SetParametersResult(successful=False, reason=" ".join(str(error).split()))
         if switch:
             self.close_bag()
             self.recorder = started
-        self.values = candidate
+        self.settings = candidate
         return SetParametersResult(successful=True)
 
     def close(self) -> None:
@@ -276,7 +277,7 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
 
     def on_joint_states(self, message: JointState) -> None:
         """Record the stage position [m] with its header stamp and arrival time."""
-        index = joint_index(message, str(self.values["joint_name"]))
+        index = joint_index(message, self.settings.joint_name)
         if index is None:
             return
         receive_ns = self.now_ns()

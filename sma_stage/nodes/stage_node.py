@@ -58,7 +58,7 @@ from sma_stage.nodes._common import (
     quiet_on_shutdown,
     run_node,
 )
-from sma_stage.nodes.stage_settings import AUTOSTART, STAGE_PARAMS, check_choice, make_hardware
+from sma_stage.nodes.stage_settings import AUTOSTART, STAGE_PARAMS, StageSettings, check_choice, make_hardware
 from sma_stage.plant.hardware import HardwareError, Reading, wire_commands
 
 DIAGNOSTICS_PERIOD_S = 1.0
@@ -106,17 +106,17 @@ class StageNode(LifecycleNode):
         super().__init__(self.NODE_NAME, **node_options)
         note_started(self)
         try:
-            values = declare_all(self, STAGE_PARAMS)
-            self.autostart = check_choice("autostart", str(values["autostart"]), AUTOSTART)
+            values = StageSettings.of(declare_all(self, STAGE_PARAMS))
+            self.autostart = check_choice("autostart", values.autostart, AUTOSTART)
             self.hardware = make_hardware(values)
         except InputError:
             self.destroy_node()
             raise
         self.backend = self.hardware.kind
-        self.rate_hz = float(values["rate_hz"])
-        self.time_scale = float(values["time_scale"])
+        self.rate_hz = values.rate_hz
+        self.time_scale = values.time_scale
         self.sim_dt_s = self.time_scale / self.rate_hz
-        self.reconnect_max_s = float(values["reconnect_max_interval"])
+        self.reconnect_max_s = values.reconnect_max_interval
         self.use_sim_time = bool(self.get_parameter("use_sim_time").value)
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.lifecycle = "unconfigured"

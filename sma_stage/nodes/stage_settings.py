@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import fields
 
 from sma_stage.errors import InputError
-from sma_stage.nodes._common import Param
+from sma_stage.nodes._common import Param, settings_type
 from sma_stage.plant import Effects, StageConfig
 from sma_stage.plant.hardware import SimulatedHardware, StageHardware
 
@@ -43,6 +43,7 @@ STAGE_PARAMS = [
           read_only=True),
     *effect_params(),
 ]
+StageSettings = settings_type("StageSettings", STAGE_PARAMS)
 
 
 def check_choice(name: str, value: str, known: tuple[str, ...]) -> str:
@@ -52,15 +53,15 @@ def check_choice(name: str, value: str, known: tuple[str, ...]) -> str:
     return value
 
 
-def make_hardware(values: dict[str, object]) -> StageHardware:
+def make_hardware(values: StageSettings) -> StageHardware:
     """The backend the parameters name (InputError for a bad or missing hardware file)."""
-    if check_choice("backend", str(values["backend"]), BACKENDS) == "sim":
-        effects = Effects(**{item.name: values[item.name] for item in fields(Effects)})
-        return SimulatedHardware(StageConfig(), effects, int(values["seed"]))
+    if check_choice("backend", values.backend, BACKENDS) == "sim":
+        effects = Effects(**{item.name: getattr(values, item.name) for item in fields(Effects)})
+        return SimulatedHardware(StageConfig(), effects, values.seed)
     from sma_stage.plant.visa import VisaStage
     from sma_stage.plant.visa_config import load_bridge_config
 
-    if not values["hardware_file"]:
+    if not values.hardware_file:
         raise InputError("parameter 'hardware_file': backend 'visa' needs the instruments' YAML file "
                          "(see config/hardware_example.yaml)")
-    return VisaStage(load_bridge_config(str(values["hardware_file"])), time_scale=float(values["time_scale"]))
+    return VisaStage(load_bridge_config(values.hardware_file), time_scale=values.time_scale)

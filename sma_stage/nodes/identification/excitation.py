@@ -14,7 +14,7 @@ from sma_stage.signals import designed_identification_signal, paper_identificati
 
 
 class ExcitationRoom:
-    """~/excite and ~/abort_excitation, and the excitation's timer (uses the node's values, lock and publishers)."""
+    """~/excite and ~/abort_excitation, and the excitation's timer (uses the node's settings, lock and publishers)."""
 
     @property
     def exciting(self) -> bool:
@@ -23,11 +23,11 @@ class ExcitationRoom:
 
     def signal_time_s(self) -> float:
         """Seconds of signal time since the excitation started."""
-        return (self.now_ns() - self.excite_start_ns) * 1e-9 * float(self.values["excite_time_scale"])
+        return (self.now_ns() - self.excite_start_ns) * 1e-9 * self.settings.excite_time_scale
 
     def on_excite(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Start driving the identification signal and return at once."""
-        response.success, response.message = self.start_excitation(float(self.values["excite_duration"]))
+        response.success, response.message = self.start_excitation(self.settings.excite_duration)
         return response
 
     def start_excitation(self, duration_s: float) -> tuple[bool, str]:
@@ -38,24 +38,24 @@ class ExcitationRoom:
         if self.now_ns() == 0:
             return False, ("no time yet: use_sim_time is true and no /clock message has come (is the stage running "
                            "with use_sim_time?); the signal would start part-way through")
-        if self.values["excite_signal"] not in EXCITATIONS:
-            return False, f"excite_signal must be one of {', '.join(EXCITATIONS)}, got {self.values['excite_signal']!r}"
-        if self.values["clear_on_excite"]:
+        if self.settings.excite_signal not in EXCITATIONS:
+            return False, f"excite_signal must be one of {', '.join(EXCITATIONS)}, got {self.settings.excite_signal!r}"
+        if self.settings.clear_on_excite:
             self.on_clear(Trigger.Request(), Trigger.Response())
         with self._lock:
             self.record_until_ns = None
         self.excite_start_ns = self.now_ns()
         self.excite_duration_s = duration_s
         self.set_compensator_enabled(False)
-        self.excite_timer = self.create_timer(1.0 / float(self.values["excite_rate_hz"]),
+        self.excite_timer = self.create_timer(1.0 / self.settings.excite_rate_hz,
                                               quiet_on_shutdown(self, self.on_excite_tick))
         self.on_excite_tick()
-        if self.values["excite_signal"] == "designed":
-            message = (f"exciting: the designed signal up to {self.values['excite_amplitude_start']:g} A, "
+        if self.settings.excite_signal == "designed":
+            message = (f"exciting: the designed signal up to {self.settings.excite_amplitude_start:g} A, "
                        f"{duration_s:g} s of signal time")
         else:
-            message = (f"exciting: {self.values['excite_amplitude_start']:g} A falling to "
-                       f"{self.values['excite_amplitude_end']:g} A, period {self.values['excite_period']:g} s, "
+            message = (f"exciting: {self.settings.excite_amplitude_start:g} A falling to "
+                       f"{self.settings.excite_amplitude_end:g} A, period {self.settings.excite_period:g} s, "
                        f"{duration_s:g} s of signal time")
         self.get_logger().info(message)
         return True, message
@@ -73,7 +73,7 @@ class ExcitationRoom:
         if t >= duration:
             self.command_pub.publish(Float64(data=0.0))
             self.stop_excitation()
-            frozen = bool(self.values["freeze_after_excite"])
+            frozen = self.settings.freeze_after_excite
             with self._lock:
                 self.record_until_ns = self.now_ns() if frozen else None
             if self._refit_after_excitation:
@@ -84,12 +84,12 @@ class ExcitationRoom:
             self.get_logger().info("excitation finished: ~/refit can fit it now"
                                    + (" (buffer frozen until ~/clear or ~/excite)" if frozen else ""))
             return
-        if self.values["excite_signal"] == "designed":
-            value = designed_identification_signal(t, float(self.values["excite_amplitude_start"]), duration)
+        if self.settings.excite_signal == "designed":
+            value = designed_identification_signal(t, self.settings.excite_amplitude_start, duration)
         else:
-            value = paper_identification_signal(t, float(self.values["excite_amplitude_start"]),
-                                                float(self.values["excite_amplitude_end"]),
-                                                float(self.values["excite_period"]), duration)
+            value = paper_identification_signal(t, self.settings.excite_amplitude_start,
+                                                self.settings.excite_amplitude_end,
+                                                self.settings.excite_period, duration)
         self.command_pub.publish(Float64(data=float(value)))
 
     def on_abort_excitation(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -119,7 +119,7 @@ class ExcitationRoom:
     def set_compensator_enabled(self, enabled: bool) -> None:
         """Ask the compensator to publish again or to keep silent (pause_compensator); answers are logged,
         not awaited (a service callback must not block)."""
-        if not self.values["pause_compensator"] or not self.context.ok():
+        if not self.settings.pause_compensator or not self.context.ok():
             return
         name = self.push_client.srv_name
         if not self.push_client.service_is_ready():

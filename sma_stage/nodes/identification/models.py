@@ -24,7 +24,7 @@ from sma_stage.nodes.identification.refit import report_json, report_path
 
 
 class ModelsRoom:
-    """The history, ~/rollback, and the watch's ticks and drift (uses the node's values, lock and refit)."""
+    """The history, ~/rollback, and the watch's ticks and drift (uses the node's settings, lock and refit)."""
 
     def publish_report(self, report: dict | None = None) -> None:
         """Publish the last refit's report (or this new one) on ~/report with the history of the models in force."""
@@ -78,24 +78,24 @@ class ModelsRoom:
         if start_s is None:
             return
         t_s, _, _ = self.watch.recent_arrays()
-        if len(t_s) and t_s[-1] - start_s >= float(self.values["drift_refit_record"]):
+        if len(t_s) and t_s[-1] - start_s >= self.settings.drift_refit_record:
             self._drift_refit_from_s = None
             self.start_guarded_refit(f"the record from {start_s:.0f} s, where the change began",
                                      lambda: self.recent_series(start_s),
-                                     hysteresis_only=self.values["drift_refit_scope"] == "hysteresis")
+                                     hysteresis_only=self.settings.drift_refit_scope == "hysteresis")
 
     def on_drift(self, watch: ModelWatch) -> None:
         """The watch turned to drift: act as on_drift says (report: the watch logged it already)."""
-        action = self.values["on_drift"]
+        action = self.settings.on_drift
         if action == "refit":
             self._drift_refit_from_s = watch.onset_s
-            self.get_logger().info(f"drift: a refit follows once {self.values['drift_refit_record']:g} s are "
+            self.get_logger().info(f"drift: a refit follows once {self.settings.drift_refit_record:g} s are "
                                    f"recorded from where the change began ({watch.onset_s:.0f} s)")
         elif action == "excite":
             if self.refitting:
                 self.get_logger().warning("drift: no excitation while a refit runs")
                 return
-            started, message = self.start_excitation(float(self.values["drift_excite_duration"]))
+            started, message = self.start_excitation(self.settings.drift_excite_duration)
             self._refit_after_excitation = started
             if not started:
                 self.get_logger().warning(f"drift: cannot excite: {message}")
@@ -106,7 +106,7 @@ class ModelsRoom:
         t_s, current_a, position_m = self.watch.recent_arrays()
         kept = t_s >= from_s
         return make_series(t_s[kept], current_a[kept], position_m[kept], "the watch's recent record",
-                           min_samples=int(self.values["min_samples"]))
+                           min_samples=self.settings.min_samples)
 
     def start_guarded_refit(self, what: str, series: Callable[[], Series], hysteresis_only: bool = False) -> None:
         """Refit what series() gives in the background (hysteresis_only: the model in force's GPI parameters with
@@ -144,7 +144,7 @@ class ModelsRoom:
         if hysteresis_only and refusal is None:
             self.get_logger().info(f"refit on drift: the hysteresis of the model in force on {what} ({len(series)} "
                                    "samples), its dynamics held")
-            found = refit_hysteresis(series, in_force.model, float(self.values["holdout_fraction"]),
+            found = refit_hysteresis(series, in_force.model, self.settings.holdout_fraction,
                                      source=f"identification node, hysteresis refit on drift ({what})")
         else:
             self.get_logger().info(f"refit on drift: fitting {what} ({len(series)} samples)"

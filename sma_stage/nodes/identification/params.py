@@ -7,10 +7,7 @@ from sma_stage.identify.families import FAMILIES
 from sma_stage.identify.pipeline import FIT_SAMPLES
 from sma_stage.identify.workers import MAX_NICENESS, WORKER_NICENESS
 from sma_stage.model.parameters import MAX_OPERATORS
-from sma_stage.nodes._common import (
-    JOINT_NAME,
-    Param,
-)
+from sma_stage.nodes._common import JOINT_NAME, Param, Settings, settings_type
 
 EXCITATIONS = ("paper", "designed")
 ON_DRIFT = ("report", "refit", "excite")
@@ -108,17 +105,19 @@ IDENTIFICATION_PARAMS = [
 
 
 
+IdentificationSettings = settings_type("IdentificationSettings", IDENTIFICATION_PARAMS)
 
-def check_drift_settings(values: dict[str, object]) -> None:
+
+def check_drift_settings(values: Settings) -> None:
     """Refuse an on_drift this node does not know, or a drift refit's record longer than the watch keeps."""
-    if values["on_drift"] not in ON_DRIFT:
-        raise InputError(f"on_drift must be one of {', '.join(ON_DRIFT)}, got {values['on_drift']!r}")
-    if values["drift_refit_scope"] not in DRIFT_REFIT_SCOPES:
+    if values.on_drift not in ON_DRIFT:
+        raise InputError(f"on_drift must be one of {', '.join(ON_DRIFT)}, got {values.on_drift!r}")
+    if values.drift_refit_scope not in DRIFT_REFIT_SCOPES:
         raise InputError(f"drift_refit_scope must be one of {', '.join(DRIFT_REFIT_SCOPES)}, got "
-                         f"{values['drift_refit_scope']!r}")
-    if float(values["drift_refit_record"]) > float(values["watch_record"]):
-        raise InputError(f"drift_refit_record {values['drift_refit_record']:g} s is longer than the watch keeps "
-                         f"(watch_record {values['watch_record']:g} s)")
+                         f"{values.drift_refit_scope!r}")
+    if values.drift_refit_record > values.watch_record:
+        raise InputError(f"drift_refit_record {values.drift_refit_record:g} s is longer than the watch keeps "
+                         f"(watch_record {values.watch_record:g} s)")
 
 def check_storage(storage: str) -> None:
     """Refuse a rosbag2 storage this node cannot write."""

@@ -81,14 +81,14 @@ class RefitRoom:
 
     def snapshot(self) -> Series:
         """The recording so far as a checked Series (InputError when it cannot support a fit)."""
-        return self.recording_snapshot(int(self.values["min_samples"]))
+        return self.recording_snapshot(self.settings.min_samples)
 
     def recording_snapshot(self, min_samples: int) -> Series:
         """The recording so far, aligned as a bag of it would be, with at least min_samples samples."""
         with self._lock:
             inputs, outputs = list(self.inputs), list(self.outputs)
-        return recording_series(inputs, outputs, min_samples, str(self.values["input_topic"]),
-                                float(self.values["excite_time_scale"]))
+        return recording_series(inputs, outputs, min_samples, self.settings.input_topic,
+                                self.settings.excite_time_scale)
 
     def on_refit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the recording (in the refit worker thread) and answer with the JSON report."""
@@ -123,17 +123,17 @@ class RefitRoom:
     def identify(self, series: Series, source: str) -> Identification:
         """The identification pipeline on series with this node's settings (held-out tail, operators,
         diagnosis, families, thinning)."""
-        return identify_recording(series, holdout_fraction=float(self.values["holdout_fraction"]),
-                                  operators=int(self.values["operators"]) or None,
-                                  diagnose_rounds=int(self.values["diagnose_rounds"]), source=source,
-                                  workers=int(self.values["diagnose_workers"]),
-                                  families=tuple(self.values["families"]),
-                                  max_fit_samples=int(self.values["max_fit_samples"]),
+        return identify_recording(series, holdout_fraction=self.settings.holdout_fraction,
+                                  operators=self.settings.operators or None,
+                                  diagnose_rounds=self.settings.diagnose_rounds, source=source,
+                                  workers=self.settings.diagnose_workers,
+                                  families=self.settings.families,
+                                  max_fit_samples=self.settings.max_fit_samples,
                                   niceness=self.refit_niceness())
 
     def refit_niceness(self) -> int:
         """Nice levels a refit's thread and its worker processes run below the node's other threads."""
-        return int(self.values["refit_niceness"])
+        return self.settings.refit_niceness
 
     def lower_refit_priority(self) -> None:
         """The calling thread (a refit's) refit_niceness levels down: a stage on the same computer keeps its cycles."""
@@ -160,7 +160,7 @@ class RefitRoom:
     def check_held_out(self, report: dict, series: Series) -> None:
         """InputError when the model to deploy misses the held-out tail by more than max_held_out_rms_pct."""
         held_out = deployed_held_out(report) or {}
-        rms_pct, limit = held_out.get("rms_pct"), float(self.values["max_held_out_rms_pct"])
+        rms_pct, limit = held_out.get("rms_pct"), self.settings.max_held_out_rms_pct
         if rms_pct is not None and rms_pct > limit:
             raise InputError(f"the model misses the held-out tail by {rms_pct:.3g} % RMS, more than "
                              f"max_held_out_rms_pct {limit:g} % (recording: {len(series)} samples over "
@@ -176,7 +176,7 @@ class RefitRoom:
 
     def write_model(self, model: AnyModel) -> str | None:
         """Write the identified model's file atomically (None when model_file is empty)."""
-        path = str(self.values["model_file"])
+        path = self.settings.model_file
         if not path:
             return None
         try:
@@ -196,13 +196,13 @@ class RefitRoom:
 
     def _push(self, model: AnyModel) -> dict:
         name = self.push_client.srv_name
-        if not self.push_client.wait_for_service(timeout_sec=float(self.values["push_timeout"])):
+        if not self.push_client.wait_for_service(timeout_sec=self.settings.push_timeout):
             return {"pushed": False, "message": f"compensator service {name} not available: model not pushed"}
         parameters = [Parameter("model", value=model.to_yaml_text()).to_parameter_msg()]
         future = self.push_client.call_async(SetParametersAtomically.Request(parameters=parameters))
         done = threading.Event()
         future.add_done_callback(lambda _: done.set())
-        if not done.wait(max(float(self.values["push_timeout"]), 1.0)) or future.result() is None:
+        if not done.wait(max(self.settings.push_timeout, 1.0)) or future.result() is None:
             return {"pushed": False, "message": f"no answer from {name}: the model may not be in force"}
         result = future.result().result
         if not result.successful:
