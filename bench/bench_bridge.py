@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from record_results import recorded
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "test"))
@@ -208,4 +209,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    with recorded(__file__):
+        sys.exit(main())

@@ -19,6 +19,7 @@ import os
 import time
 
 import numpy as np
+from record_results import recorded
 
 from sma_stage.identify.effects import EFFECT_NAMES
 from sma_stage.identify.families import FAMILIES
@@ -73,4 +74,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded(__file__):
+        main()

@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from record_results import recorded
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 import synthetic  # noqa: E402  -- the test-only plant, independent of the package's effect code
@@ -121,4 +122,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with recorded(__file__):
+        raise SystemExit(main())

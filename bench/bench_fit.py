@@ -10,6 +10,7 @@ import argparse
 import time
 
 import numpy as np
+from record_results import recorded
 from scipy.optimize import least_squares
 
 from sma_stage.identify.fit import fit_gpi, normalized
@@ -111,4 +112,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded(__file__):
+        main()

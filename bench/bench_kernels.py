@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from record_results import recorded
 
 HERE = Path(__file__).resolve().parent.parent
 CASES = [("play_sensitivities", 1), ("play_sensitivities", 5), ("play_sensitivities", 20),
@@ -104,4 +105,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded(__file__):
+        main()

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from record_results import recorded
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -85,4 +86,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with recorded(__file__):
+        raise SystemExit(main())

@@ -16,6 +16,7 @@ import time
 import tracemalloc
 
 import numpy as np
+from record_results import recorded
 
 from sma_stage.model import GPIInverseStream, GPIParameters, forward, inverse
 from sma_stage.signals import paper_identification_signal, paper_validation_signal
@@ -128,4 +129,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded(__file__):
+        main()

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from record_results import recorded
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED_MODEL_FILE = REPO / "config" / "model_default.yaml"
@@ -615,9 +616,10 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except KeyboardInterrupt:
-        sys.exit("interrupted (the node processes were stopped)")
-    except RuntimeError as error:
-        sys.exit(f"error: {error}")
+    with recorded(__file__):
+        try:
+            main()
+        except KeyboardInterrupt:
+            sys.exit("interrupted (the node processes were stopped)")
+        except RuntimeError as error:
+            sys.exit(f"error: {error}")

@@ -22,6 +22,7 @@ import copy
 import math
 
 import numpy as np
+from record_results import recorded
 
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import imc_gains
@@ -160,4 +161,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with recorded(__file__):
+        raise SystemExit(main())

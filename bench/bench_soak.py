@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from record_results import recorded
+
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, wait_for
 
 SAMPLE_EVERY_S = 10.0
@@ -128,4 +130,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with recorded(__file__):
+        raise SystemExit(main())

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from record_results import recorded
 
 from sma_stage.nodes.launch import CONFIG_DIR, NodeProcesses, RosClient, wait_for
 
@@ -162,4 +163,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with recorded(__file__):
+        raise SystemExit(main())

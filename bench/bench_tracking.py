@@ -29,6 +29,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from record_results import recorded
 
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import DEFAULT_LEAD_LIMIT, imc_gains
@@ -254,4 +255,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    with recorded(__file__):
+        raise SystemExit(main())

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from record_results import recorded
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
@@ -93,4 +94,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded(__file__):
+        main()
