@@ -145,8 +145,11 @@ def add_data_arguments(parser: argparse.ArgumentParser, validate_required: bool)
 def add_reading_arguments(parser: argparse.ArgumentParser, input_topic: str) -> None:
     """How to read DATA: CSV column names, bag topics, joint name, the output's unit."""
     parser.add_argument("--columns", help='CSV column names, e.g. "t=time,input=current,output=pos" (t= for index)')
-    parser.add_argument("--input-topic", default=input_topic,
-                        help=f"bag topic of the input (std_msgs/Float64; default {input_topic})")
+    parser.add_argument("--input-topic", default=None,
+                        help="bag topic of the input (std_msgs/Float64). Default: the current in the output's "
+                             "JointState effort, stamped with the position (as the stage node records it), when "
+                             f"every message has it; else {input_topic}")
+    parser.set_defaults(default_input_topic=input_topic)
     parser.add_argument("--output-topic", default="joint_states", help="bag topic of the output (JointState)")
     parser.add_argument("--joint", default="stage_x", help="joint name in the JointState messages")
     parser.add_argument("--unit", default="m", help="unit of the output column (default m)")

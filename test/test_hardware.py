@@ -138,7 +138,9 @@ def test_a_cycle_reads_position_current_error_queues_and_the_trip_and_scales_the
     stage, log, _, _ = scripted_stage({"READ?": "+7.500000000E+00"})
     stage.connect()
     log.clear()
+    before_ns = time.time_ns()
     reading = stage.read(0.01)
+    assert before_ns <= reading.read_ns <= time.time_ns(), "stamped on the host's clock when it was read"
     assert log == [("meter", "READ?"), ("supply", ":MEAS:CURR? CH1"), ("supply", ":MEAS:VOLT? CH1"), ("supply", "SYST:ERR?"),
                    ("meter", "SYST:ERR?"), ("supply", ":OUTP:OCP:QUES? CH1")]
     assert reading.position_m == pytest.approx(2e-4 * 7.5 - 1e-3)

@@ -205,7 +205,10 @@ def test_bag_round_trip_values_and_timing(tmp_path, storage):
     series = load_series(path)
     assert np.array_equal(series.input, u) and np.array_equal(series.output, y)
     np.testing.assert_allclose(series.t, t - t[0], rtol=0, atol=1.5e-9)
-    assert "/current_cmd" in series.source and "/joint_states" in series.source
+    assert "/joint_states: effort and position stamped together" in series.source
+    by_topic = load_series(path, input_topic="current_cmd")
+    assert np.array_equal(by_topic.input, u) and np.array_equal(by_topic.output, y)
+    assert "/current_cmd" in by_topic.source and "/joint_states" in by_topic.source
 
 
 @pytest.mark.parametrize("storage", STORAGES)
@@ -225,7 +228,7 @@ def test_bag_joint_state_content(tmp_path, storage):
     stamp, message = states[4]
     header_ns = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
     assert header_ns == stamp == 5 * 10**9 + round(t[4] * 1e9)
-    assert list(message.name) == ["stage_x"] and len(message.effort) == 0
+    assert list(message.name) == ["stage_x"] and list(message.effort) == [u[4]]
     assert message.position[0] == y[4]
     assert message.velocity[0] == pytest.approx(np.gradient(y, t)[4])
 
@@ -469,6 +472,36 @@ def test_bag_alignment_falls_back_to_receive_time(tmp_path, stamp):
     held = expected_hold(at=receive)
     assert np.array_equal(series.input, held)
     np.testing.assert_allclose(series.t, (receive - receive[0]) * 1e-9)
+
+
+def jittered_bag(path, with_effort=lambda k: True, n=200, period_ns=10_000_000, jitter_ns=6_000_000):
+    """A stage's bag: position k stamped at k periods, the current applied over the period before it as its effort
+    (where with_effort(k)), and the same current on current_cmd arriving up to jitter_ns after that stamp."""
+    rng = np.random.default_rng(3)
+    start, current = 10**18, np.round(np.sin(0.05 * np.arange(n)), 6)
+    arrivals = start + np.arange(n) * period_ns + rng.integers(0, jitter_ns, n)
+    with BagRecorder(path, input_topic="current_cmd") as recorder:
+        for k in range(n):
+            stamp = start + k * period_ns
+            recorder.write_input(int(arrivals[k]), current[k])
+            recorder.write_output(stamp, 1e-5 * k, receive_ns=stamp + jitter_ns,
+                                  effort=current[k] if with_effort(k) else None)
+    return current
+
+
+def test_a_bag_with_the_current_in_joint_states_effort_reads_the_pair_stamped_together(tmp_path):
+    """The input topic timed by arrival misses the current a position went with wherever it arrived late; the
+    effort stamped with the position does not. Naming the input topic, or a bag whose messages do not all carry
+    the effort (an older stage), reads the topic as before."""
+    current = jittered_bag(tmp_path / "stamped")
+    series = load_series(tmp_path / "stamped")
+    assert np.array_equal(series.input, current) and np.array_equal(series.output, 1e-5 * np.arange(200))
+    by_arrival = load_series(tmp_path / "stamped", input_topic="current_cmd")
+    assert not np.array_equal(by_arrival.input, current[-by_arrival.input.size:])
+    jittered_bag(tmp_path / "mixed", with_effort=lambda k: k % 2 == 0)
+    mixed = load_series(tmp_path / "mixed")
+    assert "/current_cmd" in mixed.source
+    assert np.array_equal(mixed.input, by_arrival.input)
 
 
 def test_csv_with_byte_order_mark_and_crlf_lines(tmp_path):

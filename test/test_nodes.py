@@ -39,6 +39,7 @@ from sma_stage.model import Effect, GPIInverseStream, GPIParameters, IdentifiedM
 from sma_stage.model.kinds import load_any_model_file  # noqa: E402
 from sma_stage.nodes._common import COMMAND_QOS, REPORT_QOS, STATE_SUBSCRIBE_QOS  # noqa: E402
 from sma_stage.nodes.compensator_node import CompensatorNode  # noqa: E402
+from sma_stage.nodes.identification.recording import recording_series  # noqa: E402
 from sma_stage.nodes.identification_node import IdentificationNode  # noqa: E402
 from sma_stage.nodes.launch import DEFAULT_MODEL_FILE  # noqa: E402
 from sma_stage.nodes.stage_node import StageNode  # noqa: E402
@@ -996,15 +997,21 @@ class FakeStage:
         wait_until(lambda: identification.count_publishers("joint_states") >= 1
                    and identification.count_publishers("current_applied") >= 1, 5.0, "discovery")
 
-    def publish(self, currents, positions=None, commands=True, states=True, period_s: float = 0.005) -> None:
+    def publish(self, currents, positions=None, commands=True, states=True, period_s: float = 0.005,
+                effort: bool = False, commands_late: bool = False) -> None:
+        """effort: each position carries its current (as the stage node publishes); commands_late: each current
+        goes out on current_applied after its position, as a loaded transport may deliver it."""
         positions = np.tanh(np.asarray(currents) / 3.0) * 1e-4 if positions is None else positions
         for current, position in zip(currents, positions, strict=True):
-            if commands:
+            if commands and not commands_late:
                 self.send_command(current)
             if states:
-                message = JointState(name=["stage_x"], position=[float(position)], velocity=[0.0])
+                message = JointState(name=["stage_x"], position=[float(position)], velocity=[0.0],
+                                     effort=[float(current)] if effort else [])
                 message.header.stamp = self.node.get_clock().now().to_msg()
                 self.state_pub.publish(message)
+            if commands and commands_late:
+                self.send_command(current)
             time.sleep(period_s)
 
 
@@ -1048,15 +1055,46 @@ def test_the_model_watch_publishes_the_residual_and_flags_a_stage_that_moved(ros
                                                                      "model_age_s", "model_source"}
 
 
+def test_the_identification_node_records_each_position_with_the_current_stamped_with_it(ros):
+    """With the current in joint_states' effort the record pairs each position with the current that led to it,
+    however late current_applied arrives; timed by arrival (input_from_effort false, or an older stage) a current
+    that arrives after its position is paired with the next one."""
+    identification = identification_node(ros, min_samples=20)
+    fake = FakeStage(ros, identification)
+    currents = np.round(np.linspace(-4.0, 4.0, 40), 6)
+    positions = np.tanh(currents / 3.0) * 1e-4
+    fake.publish(currents, positions, effort=True, commands_late=True)
+    wait_until(lambda: len(identification.outputs) == 40 and len(identification.inputs) == 40, 5.0, "40 recorded")
+    stamped = identification.snapshot()  # from the first current's arrival, after the first position
+    own = currents[np.searchsorted(positions, stamped.output)]  # positions rise with the current
+    assert stamped.output.size >= 30 and np.array_equal(stamped.input, own)
+    with identification._lock:
+        inputs, outputs = list(identification.inputs), list(identification.outputs)
+    by_arrival = recording_series(inputs, outputs, 20, from_effort=False)
+    own = currents[np.searchsorted(positions, by_arrival.output)]
+    assert np.all(by_arrival.input < own), "each position paired with a current from before its own"
+
+
 def test_identification_refuses_a_refit_without_enough_data(ros):
     identification = identification_node(ros, min_samples=50, push_timeout=0.1)
     fake = FakeStage(ros, identification)
     answer = refit_answer(ros, fake.node)
-    assert not answer.success and "no messages on current_applied" in answer.message
+    assert not answer.success and "no messages on joint_states" in answer.message
     fake.publish(np.linspace(-4.0, 4.0, 30), states=False)
     wait_until(lambda: len(identification.inputs) == 30, 5.0, "30 recorded commands")
     answer = refit_answer(ros, fake.node)
     assert not answer.success and "no messages on joint_states" in answer.message
+    with identification._lock:
+        identification.inputs.clear()
+    fake.publish(np.linspace(-4.0, 4.0, 30), commands=False)
+    wait_until(lambda: len(identification.outputs) == 30, 5.0, "30 recorded positions")
+    answer = refit_answer(ros, fake.node)
+    assert not answer.success and "no messages on current_applied were recorded (and joint_states carry no effort)" \
+        in answer.message
+    with identification._lock:
+        identification.outputs.clear()
+    fake.publish(np.linspace(-4.0, 4.0, 30), states=False)
+    wait_until(lambda: len(identification.inputs) == 30, 5.0, "30 recorded commands")
     fake.publish(np.linspace(-4.0, 4.0, 20))
     wait_until(lambda: len(identification.outputs) == 20, 5.0, "20 recorded positions")
     answer = refit_answer(ros, fake.node)

@@ -41,7 +41,8 @@ def parse_columns(text: str | None) -> dict[str, str | None] | None:
 def read_data(path: Path, args: argparse.Namespace) -> Series:
     """One data set from a CSV file or a rosbag2 directory, as the command line names it."""
     return load_series(path, columns=parse_columns(args.columns), input_topic=args.input_topic,
-                       output_topic=args.output_topic, joint_name=args.joint)
+                       output_topic=args.output_topic, joint_name=args.joint,
+                       default_input_topic=args.default_input_topic)
 
 
 def progress_line(text: str) -> None:

@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from sma_stage.io.csv_io import read_csv
-from sma_stage.io.rosbag_io import DEFAULT_JOINT, STORAGE_FILE_SUFFIXES, read_bag
+from sma_stage.io.rosbag_io import DEFAULT_INPUT_TOPIC, DEFAULT_JOINT, STORAGE_FILE_SUFFIXES, read_bag
 from sma_stage.io.series import DEFAULT_MIN_SAMPLES, Series
 
 
@@ -24,11 +24,12 @@ def load_series(
     output_topic: str | None = None,
     joint_name: str = DEFAULT_JOINT,
     min_samples: int = DEFAULT_MIN_SAMPLES,
+    default_input_topic: str = DEFAULT_INPUT_TOPIC,
 ) -> Series:
     """A checked Series from a CSV file (`columns` maps names) or a rosbag2 (topics, joint name).
 
     Options that do not apply to the kind of data found are ignored.
     """
     if is_bag(path):
-        return read_bag(path, input_topic, output_topic, joint_name, min_samples)
+        return read_bag(path, input_topic, output_topic, joint_name, min_samples, default_input_topic)
     return read_csv(path, columns, min_samples)

@@ -1,12 +1,14 @@
 """rosbag2 directories (sqlite3 or mcap) of current commands and stage positions, through `rosbags`.
 
 The input topic carries std_msgs/msg/Float64 [A]; the output topic sensor_msgs/msg/JointState
-(position [m] of one joint) or std_msgs/msg/Float64. `rosbags` is imported on first use only.
+(position [m] of one joint, and as effort the heating current [A] applied over the period that ended at it,
+as the stage node publishes) or std_msgs/msg/Float64. `rosbags` is imported on first use only.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 import os
 import shutil
 import tempfile
@@ -107,9 +109,13 @@ def joint_index(message: Any, joint_name: str) -> int | None:
     return 0 if not names and len(message.position) == 1 else None
 
 
-def _joint_position(message: Any, joint_name: str) -> float | None:
+def _joint_reading(message: Any, joint_name: str) -> tuple[float | None, float]:
+    """(position or None when the message does not carry the joint, its effort or NaN)."""
     index = joint_index(message, joint_name)
-    return None if index is None else float(message.position[index])
+    if index is None:
+        return None, math.nan
+    effort = float(message.effort[index]) if index < len(message.effort) else math.nan
+    return float(message.position[index]), effort
 
 
 def _stamp_ns(message: Any) -> int:
@@ -127,28 +133,40 @@ def _read_inputs(reader: Any, connections: list[Any]) -> tuple[np.ndarray, np.nd
 
 def _read_outputs(
     reader: Any, connections: list[Any], joint_name: str, source: str
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(receive times, header stamps or 0, positions) of the output messages that carry the joint."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(receive times, header stamps or 0, positions, efforts or NaN) of the output messages that carry the joint."""
     store = _typestore()
-    receive, stamps, values, names_seen, without_position = [], [], [], set(), 0
+    receive, stamps, values, efforts, names_seen, without_position = [], [], [], [], set(), 0
     for connection, receive_ns, raw in reader.messages(connections=connections):
         message = store.deserialize_cdr(raw, connection.msgtype)
         if connection.msgtype == FLOAT64:
-            position, stamp = float(message.data), 0
+            (position, effort), stamp = (float(message.data), math.nan), 0
         else:
-            position, stamp = _joint_position(message, joint_name), _stamp_ns(message)
+            (position, effort), stamp = _joint_reading(message, joint_name), _stamp_ns(message)
             names_seen.update(message.name)
             without_position += joint_name in message.name and position is None
         if position is not None:
             receive.append(receive_ns)
             stamps.append(stamp)
             values.append(position)
+            efforts.append(effort)
     if names_seen and not values:
         if without_position:
             raise InputError(f"{source}: joint '{joint_name}' is named but has no position in any of the "
                              f"{without_position} messages (their position arrays are shorter than their names)")
         raise InputError(f"{source}: no joint '{joint_name}' in the output (joints found: {', '.join(sorted(names_seen))})")
-    return np.array(receive, dtype=np.int64), np.array(stamps, dtype=np.int64), np.array(values, dtype=np.float64)
+    return (np.array(receive, dtype=np.int64), np.array(stamps, dtype=np.int64), np.array(values, dtype=np.float64),
+            np.array(efforts, dtype=np.float64))
+
+
+def stamped_pairs(receive_ns: np.ndarray, stamp_ns: np.ndarray, currents: np.ndarray,
+                  positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(t [s] from the first sample, current [A], position) of outputs that each carry the current applied over
+    the period that ended at them (JointState effort), ordered by time (output_times); None unless every one does."""
+    if currents.size == 0 or not np.all(np.isfinite(currents)):
+        return None
+    times_ns = output_times(receive_ns, stamp_ns)
+    return align_zero_order_hold(times_ns, currents, times_ns, positions)
 
 
 def output_times(receive_ns: np.ndarray, stamp_ns: np.ndarray) -> np.ndarray:
@@ -196,14 +214,16 @@ def read_bag(
     output_topic: str | None = None,
     joint_name: str = DEFAULT_JOINT,
     min_samples: int = DEFAULT_MIN_SAMPLES,
+    default_input_topic: str = DEFAULT_INPUT_TOPIC,
 ) -> Series:
-    """A checked Series from a rosbag2: the input [A] held at each output time, t [s] from the first sample."""
+    """A checked Series from a rosbag2, t [s] from the first sample. Without input_topic, when every output
+    message carries the joint's effort: the current [A] and position stamped together; otherwise the input
+    topic's current (input_topic, else default_input_topic) held at each output time (a zero-order hold)."""
     from rosbags.rosbag2 import Reader
 
     path = Path(path)
     source = str(path)
     _check_bag_path(path)
-    input_topic = input_topic or DEFAULT_INPUT_TOPIC
     output_topic = output_topic or DEFAULT_OUTPUT_TOPIC
     with _bag_errors(path):
         reader = Reader(path)
@@ -212,14 +232,20 @@ def read_bag(
             if reader.message_count == 0:
                 raise InputError(f"{source}: the bag has no messages")
             kinds, connections = _topic_connections(reader)
-            input_name = match_topic(input_topic, kinds, source)
             output_name = match_topic(output_topic, kinds, source)
-            _check_type(input_name, set(kinds[input_name].split("|")), (FLOAT64,), source)
             _check_type(output_name, set(kinds[output_name].split("|")), (JOINT_STATE, FLOAT64), source)
-            input_ns, input_values = _read_inputs(reader, connections[input_name])
-            receive_ns, stamp_ns, positions = _read_outputs(reader, connections[output_name], joint_name, source)
+            receive_ns, stamp_ns, positions, efforts = _read_outputs(reader, connections[output_name], joint_name,
+                                                                     source)
+            pairs = stamped_pairs(receive_ns, stamp_ns, efforts, positions) if input_topic is None else None
+            if pairs is None:
+                input_name = match_topic(input_topic or default_input_topic, kinds, source)
+                _check_type(input_name, set(kinds[input_name].split("|")), (FLOAT64,), source)
+                input_ns, input_values = _read_inputs(reader, connections[input_name])
         finally:
             reader.close()
+    if pairs is not None:
+        return make_series(*pairs, f"{source} ({output_name}: effort and position stamped together)", False,
+                           min_samples)
     for name, count in ((input_name, input_ns.size), (output_name, positions.size)):
         if count == 0:
             raise InputError(f"{source}: no messages on topic '{name}'")
@@ -350,9 +376,11 @@ class BagRecorder:
         return self._write(self._input, stamp_ns, message)
 
     def write_output(
-        self, stamp_ns: int, position: float, velocity: float = 0.0, receive_ns: int | None = None
+        self, stamp_ns: int, position: float, velocity: float = 0.0, receive_ns: int | None = None,
+        effort: float | None = None,
     ) -> bool:
-        """Record a JointState with header stamp stamp_ns [ns], position [m] and velocity [m/s]."""
+        """Record a JointState with header stamp stamp_ns [ns], position [m], velocity [m/s] and, when given, as
+        effort the current [A] applied over the period that ended at it."""
         types = _typestore().types
         seconds, nanoseconds = divmod(int(stamp_ns), 10**9)
         header = types["std_msgs/msg/Header"](
@@ -363,7 +391,7 @@ class BagRecorder:
             name=[self.joint_name],
             position=np.array([position], dtype=np.float64),
             velocity=np.array([velocity], dtype=np.float64),
-            effort=np.empty(0, dtype=np.float64),
+            effort=np.array([] if effort is None else [effort], dtype=np.float64),
         )
         return self._write(self._output, stamp_ns if receive_ns is None else receive_ns, message)
 
@@ -438,7 +466,8 @@ def write_bag(
     """Write samples (t [s], input [A], output [m]) as a rosbag2 directory, atomically.
 
     Sample k becomes a Float64 on input_topic and then a JointState (stamped, with a finite-difference
-    velocity) on output_topic, both at start_ns + t[k] [ns], so reading it back returns the same samples.
+    velocity and the input as effort) on output_topic, both at start_ns + t[k] [ns], so reading it back returns
+    the same samples.
     """
     t, input, output = _checked_arrays(t, input, output)
     stamps = start_ns + np.round(t * 1e9).astype(np.int64)
@@ -448,5 +477,5 @@ def write_bag(
     with BagRecorder(path, storage, input_topic, output_topic, joint_name, overwrite) as recorder:
         for stamp, current, position, speed in zip(stamps.tolist(), input, output, velocity, strict=True):
             recorder.write_input(stamp, current)
-            recorder.write_output(stamp, position, speed)
+            recorder.write_output(stamp, position, speed, effort=current)
     return Path(path)

@@ -420,7 +420,7 @@ def identification_loop(bag: Path, model_file: Path, duration_s: float, input_to
     from sma_stage.io import read_bag
     from sma_stage.model.kinds import load_any_model_file
 
-    series = read_bag(bag, input_topic=input_topic)
+    series = read_bag(bag, default_input_topic=input_topic)
     start = float(series.t[np.argmax(series.input != 0.0)])
     excitation = series.window(start, start + duration_s)
     predicted = load_any_model_file(model_file).predict(excitation.t, excitation.input)

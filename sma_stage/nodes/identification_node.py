@@ -45,6 +45,7 @@ This file holds the wiring, the recording's callbacks and the health; the rest i
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import deque
 from pathlib import Path
@@ -113,7 +114,7 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
             self.destroy_node()
             raise
         self.inputs: deque[tuple[int, float]] = deque(maxlen=self.settings.max_samples)
-        self.outputs: deque[tuple[int, int, float]] = deque(maxlen=self.settings.max_samples)
+        self.outputs: deque[tuple[int, int, float, float]] = deque(maxlen=self.settings.max_samples)
         self.excite_start_ns: int | None = None
         self.excite_duration_s = self.settings.excite_duration
         self.excite_timer = None
@@ -150,7 +151,7 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
                 bias_threshold=self.settings.watch_bias_threshold)
             self.watch = WatchChannel(self, test, self.settings.excite_time_scale,
                                       self.settings.joint_name, self.settings.watch_record,
-                                      self.on_drift)
+                                      self.on_drift, self.settings.input_from_effort)
             self.create_timer(WATCH_PERIOD_S, quiet_on_shutdown(self, self.on_watch_tick))
         self.create_subscription(String, f"{self.settings.compensator_name.rstrip('/')}/model",
                                  self.on_model_in_force, REPORT_QOS)
@@ -276,7 +277,8 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
             recorder.write_input(receive_ns, value)
 
     def on_joint_states(self, message: JointState) -> None:
-        """Record the stage position [m] with its header stamp and arrival time."""
+        """Record the stage position [m] with its header stamp and arrival time, and the current [A] applied over
+        the period that ended at it (its effort; NaN when the message has none)."""
         index = joint_index(message, self.settings.joint_name)
         if index is None:
             return
@@ -284,14 +286,15 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
         stamp_ns = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
         position = float(message.position[index])
         velocity = float(message.velocity[index]) if index < len(message.velocity) else 0.0
+        effort = float(message.effort[index]) if index < len(message.effort) else math.nan
         with self._lock:
             if self.recording_output(receive_ns, stamp_ns):
-                self.outputs.append((receive_ns, stamp_ns, position))
+                self.outputs.append((receive_ns, stamp_ns, position, effort))
         if self.watch is not None:
-            self.watch.add_output(receive_ns, stamp_ns, position)
+            self.watch.add_output(receive_ns, stamp_ns, position, effort)
         recorder = self.recorder
         if recorder is not None:
-            recorder.write_output(stamp_ns, position, velocity, receive_ns)
+            recorder.write_output(stamp_ns, position, velocity, receive_ns, effort if math.isfinite(effort) else None)
 
     def recording_output(self, receive_ns: int, stamp_ns: int) -> bool:
         """Whether a position belongs in the buffer: always, unless it is frozen; then only positions

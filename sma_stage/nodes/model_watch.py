@@ -6,6 +6,7 @@ record leaves it), publishes the residual on `~/residual` and its state on /diag
 from __future__ import annotations
 
 import json
+import math
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -36,15 +37,17 @@ def model_message(model_yaml: str, source: str) -> String:
 class WatchChannel:
     """The watch's inputs, its model and its outputs, for one node (`owner`): time_scale gives stage seconds
     per node-clock second; joint_name the joint of joint_states; record_s the stage seconds of recent samples
-    kept; on_drift is called (from the owner's executor) when the watch turns to drift."""
+    kept; on_drift is called (from the owner's executor) when the watch turns to drift. With from_effort the
+    current of a position is its message's effort (stamped together) when every queued position has one; else
+    the latest input received by the position's time."""
 
     def __init__(self, owner: Node, test: DriftTest, time_scale: float, joint_name: str, record_s: float,
-                 on_drift: Callable[[ModelWatch], None]) -> None:
+                 on_drift: Callable[[ModelWatch], None], from_effort: bool = True) -> None:
         self.owner, self.test, self.time_scale, self.joint_name = owner, test, time_scale, joint_name
-        self.on_drift = on_drift
+        self.on_drift, self.from_effort = on_drift, from_effort
         self._lock = threading.Lock()
         self._inputs: deque[tuple[int, float]] = deque(maxlen=QUEUE_LENGTH)
-        self._outputs: deque[tuple[int, int, float]] = deque(maxlen=QUEUE_LENGTH)
+        self._outputs: deque[tuple[int, int, float, float]] = deque(maxlen=QUEUE_LENGTH)
         self._last_input: tuple[int, float] | None = None
         self.recent = RecentRecord(record_s)
         self.watch: ModelWatch | None = None
@@ -75,9 +78,9 @@ class WatchChannel:
         with self._lock:
             self._inputs.append((receive_ns, value))
 
-    def add_output(self, receive_ns: int, stamp_ns: int, position: float) -> None:
+    def add_output(self, receive_ns: int, stamp_ns: int, position: float, effort: float = math.nan) -> None:
         with self._lock:
-            self._outputs.append((receive_ns, stamp_ns, position))
+            self._outputs.append((receive_ns, stamp_ns, position, effort))
 
     def run(self) -> None:
         """Run the queued positions through the model and publish their residuals."""
@@ -88,22 +91,27 @@ class WatchChannel:
             self._inputs.clear()
             if inputs:
                 self._last_input = inputs[-1]
-        if not outputs or not inputs:
+        if not outputs:
             return
-        receive_ns, stamp_ns, positions = (np.array(column) for column in zip(*outputs, strict=True))
+        receive_ns, stamp_ns, positions, efforts = (np.array(column) for column in zip(*outputs, strict=True))
         times_ns = output_times(receive_ns.astype(np.int64), stamp_ns.astype(np.int64))
         order = np.argsort(times_ns, kind="stable")
-        times_ns, positions = times_ns[order], positions[order]
-        input_ns, values = (np.array(column) for column in zip(*inputs, strict=True))
-        in_order = np.argsort(input_ns, kind="stable")
-        latest = np.searchsorted(input_ns[in_order], times_ns, side="right") - 1  # the current held then
-        usable = (latest >= 0) & (np.append(np.diff(times_ns) > 0, True))
+        times_ns, positions, efforts = times_ns[order], positions[order], efforts[order].astype(float)
+        if self.from_effort and np.all(np.isfinite(efforts)):
+            currents = efforts  # stamped with the position they led to
+        elif inputs:
+            input_ns, values = (np.array(column) for column in zip(*inputs, strict=True))
+            in_order = np.argsort(input_ns, kind="stable")
+            latest = np.searchsorted(input_ns[in_order], times_ns, side="right") - 1  # the current held then
+            currents = np.where(latest >= 0, values[in_order][np.maximum(latest, 0)].astype(float), math.nan)
+        else:
+            return
+        usable = np.isfinite(currents) & np.append(np.diff(times_ns) > 0, True)
         if self.last_sample_ns is not None:
             usable &= times_ns > self.last_sample_ns
         if not usable.any():
             return
-        kept_ns, measured = times_ns[usable], positions[usable].astype(float)
-        held = values[in_order][latest[usable]].astype(float)
+        kept_ns, measured, held = times_ns[usable], positions[usable].astype(float), currents[usable]
         stage_s = kept_ns * 1e-9 * self.time_scale
         self.last_sample_ns = int(kept_ns[-1])
         with self._lock:  # a model set from here on starts from the record with these samples in it

@@ -382,9 +382,12 @@ class StageNode(LifecycleNode):
         self.published_steps += 1
 
     def stamp(self):
-        """The time of the current state: the stage's time with use_sim_time, else the node clock."""
+        """The time of the current state: the stage's time with use_sim_time, else when the instruments were read
+        (the SCPI bridge), else the node clock."""
         if self.use_sim_time:
             return Time(nanoseconds=round(self.reading.time_s * 1e9)).to_msg()
+        if self.reading.read_ns is not None:
+            return Time(nanoseconds=self.reading.read_ns).to_msg()
         return self.get_clock().now().to_msg()
 
     def on_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -45,10 +45,12 @@ def signed_current(values: Mapping[str, float]) -> float:
 @dataclass(frozen=True)
 class Reading:
     """The state interfaces after a cycle, and the stage's time [s] (simulated time for the simulator, the
-    host's steady clock since connect otherwise)."""
+    host's steady clock since connect otherwise); read_ns: the host's clock (time.time_ns, the ROS clock of a
+    node without simulated time) [ns] at which the instruments were read, None for the simulator."""
 
     time_s: float
     states: Mapping[str, float]
+    read_ns: int | None = None
 
     @property
     def position_m(self) -> float:

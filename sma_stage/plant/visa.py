@@ -308,7 +308,7 @@ class VisaStage(StageHardware):
 
     # -- state ------------------------------------------------------------------------------------------
     def read(self, period_s: float) -> Reading:
-        now = self._clock()
+        now, read_ns = self._clock(), time.time_ns()
         supply, commands = self._supply(), self.config.supply.commands
         position = self.config.position
         raw = self._instrument(position.instrument).query_number(position.query)
@@ -329,7 +329,8 @@ class VisaStage(StageHardware):
                 self._budgets[wire].add(flowing, (time_s - self._last_read[0]) / self.time_scale)
         self._last_read = (time_s, position_m)
         applied = self.readback_a if self.relay == "wire_a" else -self.readback_a if self.relay == "wire_b" else 0.0
-        return Reading(time_s, {**wire_commands(applied), STAGE_POSITION: position_m, STAGE_VELOCITY: velocity})
+        return Reading(time_s, {**wire_commands(applied), STAGE_POSITION: position_m, STAGE_VELOCITY: velocity},
+                       read_ns)
 
     def _check_error_queues(self) -> None:
         for instrument in self.instruments.values():

@@ -98,6 +98,9 @@ IDENTIFICATION_PARAMS = [
     Param("drift_excite_duration", 300.0, "on_drift excite: the excitation's length [s of signal time]", 1.0, 1e6),
     Param("model_history", 5, "models in force kept, newest last (~/rollback restores the one before)", 2, 1000,
           read_only=True),
+    Param("input_from_effort", True, "record, refit and watch the current [A] from joint_states' effort, stamped "
+          "with the position it led to (as the stage node publishes it), when every message carries it; false, or "
+          "a stage without it: input_topic, timed by its arrival", read_only=True),
     Param("input_topic", "current_applied", "std_msgs/Float64 topic of the current recorded and fitted [A]: what "
           "the stage applied (current_cmd for a stage that does not publish it, or a bag of commands)",
           read_only=True),

@@ -14,20 +14,34 @@ import numpy as np
 
 from sma_stage.errors import InputError
 from sma_stage.io import BagRecorder, align_zero_order_hold, make_series
-from sma_stage.io.rosbag_io import output_times
+from sma_stage.io.rosbag_io import output_times, stamped_pairs
 from sma_stage.io.series import Series
 
 
-def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, int, float]],
-                     min_samples: int, input_topic: str = "current_applied", time_scale: float = 1.0) -> Series:
+def recording_series(inputs: list[tuple[int, float]], outputs: list[tuple[int, int, float, float]],
+                     min_samples: int, input_topic: str = "current_applied", time_scale: float = 1.0,
+                     from_effort: bool = True) -> Series:
     """The checked Series (t [s of stage time: node-clock seconds times time_scale], input [A], output [m]) of a
-    recording; InputError saying what is missing."""
-    if not inputs:
-        raise InputError(f"no messages on {input_topic} were recorded: is anything publishing it?")
+    recording; InputError saying what is missing. outputs: (receive, stamp [ns], position [m], effort [A] or NaN);
+    with from_effort, when every one has its effort, the current and position stamped together, else the
+    inputs (receive [ns], current [A]) held at each position's time. Either way the record starts at the first
+    input when there is one (positions from before an excitation's first command are not part of it)."""
     if not outputs:
         raise InputError("no messages on joint_states were recorded: is the stage running?")
+    receive_ns, stamp_ns, positions, efforts = (np.array(column) for column in zip(*outputs, strict=True))
+    receive_ns, stamp_ns = receive_ns.astype(np.int64), stamp_ns.astype(np.int64)
+    if from_effort and inputs:
+        after_first_input = output_times(receive_ns, stamp_ns) >= min(receive for receive, _ in inputs)
+        receive_ns, stamp_ns = receive_ns[after_first_input], stamp_ns[after_first_input]
+        positions, efforts = positions[after_first_input], efforts[after_first_input]
+    pairs = stamped_pairs(receive_ns, stamp_ns, efforts.astype(float), positions.astype(float)) if from_effort else None
+    if pairs is not None:
+        t, u, y = pairs
+        return make_series(t * time_scale, u, y, "recording", min_samples=min_samples)
+    if not inputs:
+        unstamped = " (and joint_states carry no effort)" if from_effort else ""
+        raise InputError(f"no messages on {input_topic} were recorded{unstamped}: is anything publishing it?")
     input_ns, input_values = (np.array(column) for column in zip(*inputs, strict=True))
-    receive_ns, stamp_ns, positions = (np.array(column) for column in zip(*outputs, strict=True))
     t, u, y = align_zero_order_hold(input_ns.astype(np.int64), input_values.astype(float),
                                     output_times(receive_ns.astype(np.int64), stamp_ns.astype(np.int64)),
                                     positions.astype(float))
@@ -122,9 +136,11 @@ class BagThread:
         """Queue a current command [A] received at stamp_ns."""
         self._put(("write_input", (stamp_ns, value)))
 
-    def write_output(self, stamp_ns: int, position: float, velocity: float, receive_ns: int) -> None:
-        """Queue a JointState (header stamp stamp_ns, position [m], velocity [m/s]) received at receive_ns."""
-        self._put(("write_output", (stamp_ns, position, velocity, receive_ns)))
+    def write_output(self, stamp_ns: int, position: float, velocity: float, receive_ns: int,
+                     effort: float | None = None) -> None:
+        """Queue a JointState (header stamp stamp_ns, position [m], velocity [m/s], effort: the current [A] applied
+        over the period that ended at it, when known) received at receive_ns."""
+        self._put(("write_output", (stamp_ns, position, velocity, receive_ns, effort)))
 
     def close(self) -> Path:
         """Write what is queued, finish the bag (renamed into place) and return its path."""

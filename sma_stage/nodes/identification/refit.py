@@ -88,7 +88,7 @@ class RefitRoom:
         with self._lock:
             inputs, outputs = list(self.inputs), list(self.outputs)
         return recording_series(inputs, outputs, min_samples, self.settings.input_topic,
-                                self.settings.excite_time_scale)
+                                self.settings.excite_time_scale, self.settings.input_from_effort)
 
     def on_refit(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Fit the recording (in the refit worker thread) and answer with the JSON report."""
