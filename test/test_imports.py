@@ -67,3 +67,37 @@ def test_no_module_of_the_package_imports_itself_through_others():
     assert len(graph) > 50 and "sma_stage.model.identified" in graph
     circle = find_circle(graph)
     assert circle is None, "import circle: " + " -> ".join(circle)
+
+
+NUMERICAL_CORE = ("sma_stage.model", "sma_stage.identify", "sma_stage.plant", "sma_stage.control", "sma_stage.io")
+ROS_PACKAGES = ("rclpy", "rcl_interfaces", "std_msgs", "sensor_msgs", "diagnostic_msgs", "std_srvs", "rosgraph_msgs",
+                "builtin_interfaces", "launch", "launch_ros")
+
+
+def foreign_imports(path: Path) -> set[str]:
+    """The top-level names of every module a file imports from outside the package, anywhere in it."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module.split(".")[0])
+    return found - {"sma_stage"}
+
+
+def test_the_numerical_core_imports_no_ros_package_even_through_the_package():
+    """model/, identify/, plant/, control/ and io/ run without ROS: no ROS import in them, nor in any module of the
+    package they import (rosbags, pure Python, reads bags without ROS)."""
+    graph = import_graph()
+    paths = {module_name(path): path for path in PACKAGE.rglob("*.py")}
+    core = [name for name in graph if name.startswith(NUMERICAL_CORE)]
+    assert len(core) > 40
+    reached, todo = set(), list(core)
+    while todo:
+        name = todo.pop()
+        if name not in reached:
+            reached.add(name)
+            todo.extend(graph[name])
+    with_ros = {name: sorted(foreign_imports(paths[name]) & set(ROS_PACKAGES)) for name in reached}
+    assert not any(with_ros.values()), {name: found for name, found in with_ros.items() if found}
+    assert foreign_imports(paths["sma_stage.nodes.stage_node"]) & set(ROS_PACKAGES), "the check sees ROS imports"
