@@ -8,14 +8,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_two_wire import example_model as example_two_wire
 
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import imc_gains, slew_time_s
+from sma_stage.control.drives import dead_band_a, reach_span_m
 from sma_stage.control.thermal import ThermalState
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
 from sma_stage.model.effects import EffectState, lag_step
 from sma_stage.model.kinds import load_any_model_file
+from sma_stage.model.two_wire import TwoWireModel, TwoWireParameters
 from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 from sma_stage.plant import StageSimulator
 
@@ -141,6 +144,25 @@ def test_a_held_setpoint_settles_without_a_limit_cycle(period_s):
         assert np.ptp(positions[last]) < 1e-6, f"level {level_m}: {1e6 * np.ptp(positions[last]):.2f} um p-p"
         assert abs(np.mean(positions[last]) - level_m) < 2e-7
         assert np.percentile(np.abs(np.diff(currents[last])), 99) < 0.005 * LIMIT_A
+
+
+@pytest.mark.parametrize("period_s", [0.1, 0.4])
+def test_a_setpoint_that_moves_after_a_hold_starts_from_where_the_stage_is(period_s):
+    """The shipped model in the loop on the simulator: 100 um held 300 s (the linear path takes the loop's
+    reversals), then a ramp down at 1 um/s for 100 s, tracked within 8 um. Without the model run on the whole
+    command during the hold, the inverse resumed from a state that had not seen the linear path's current and the
+    ramp began 14-15 um off (4.7 um with it)."""
+    model = load_any_model_file(DEFAULT_MODEL_FILE)
+    stage = StageSimulator(seed=0)
+    core = Compensator(model, LIMIT_A, **imc_gains(model, period_s))
+    measured, dt_s, held_steps, errors = stage.state.measured_position_m, 0.0, int(300.0 / period_s), []
+    for k in range(held_steps + int(100.0 / period_s)):
+        setpoint = 1e-4 - 1e-6 * period_s * max(k - held_steps, 0)
+        state = stage.step(core.command(setpoint, measured, dt_s), period_s)
+        measured, dt_s = state.measured_position_m, period_s
+        if k >= held_steps:
+            errors.append(state.position_m - (setpoint - 1e-6 * period_s))
+    assert np.max(np.abs(errors)) < 8e-6, f"{1e6 * np.max(np.abs(errors)):.2f} um"
 
 
 @pytest.mark.parametrize(("call", "name"), [
@@ -344,6 +366,37 @@ def test_the_current_changes_by_at_most_the_rate_limit_per_step():
     currents = [first] + [core.command(3e-4, None, 0.1) for _ in range(100)]
     assert np.max(np.abs(np.diff(currents))) <= 0.1 + 1e-12
     assert currents[-1] > currents[1] + 2.0, "it gets there, 0.1 A per 0.1 s step"
+
+
+def wires_moving_beyond(centre: float) -> TwoWireModel:
+    """A two-wire model whose wires move the stage only when heated beyond `centre` (heating units)."""
+    params = example_two_wire().parameters
+    values = {**params.values, "centre_a": centre, "centre_b": centre}
+    return TwoWireModel(TwoWireParameters(values, params.weights_a, params.weights_b, params.output_weights))
+
+
+def test_the_dead_band_is_where_no_wire_moves_the_stage_in_the_model():
+    assert dead_band_a(load_model_file(DEFAULT_MODEL_FILE), LIMIT_A) == (0.0, 0.0), "the simulator's GPI has none"
+    low, high = dead_band_a(wires_moving_beyond(3.0), LIMIT_A)
+    assert -1.5 <= low <= -1.0 and 1.0 <= high <= 1.5
+    assert dead_band_a(wires_moving_beyond(1.6), LIMIT_A) == (0.0, 0.0)
+
+
+def test_the_rate_limit_counts_the_current_beyond_the_dead_band_and_crosses_the_band_at_once():
+    """From wire a to wire b at 1 A/s: every step moves the current beyond the band by at most 0.1 A, and one
+    step hands over across the band (no time lost where nothing moves)."""
+    model = wires_moving_beyond(3.0)
+    low, high = dead_band_a(model, LIMIT_A)
+    core = Compensator(model, LIMIT_A, max_rate_a_per_s=1.0)
+    bottom, top = core.drive.target_bounds
+    reach = (bottom + top) / 2 + np.array([-0.5, 0.5]) * reach_span_m(core.drive)
+    currents = [core.command(reach[1], None, 0.0)] + [core.command(reach[1], None, 0.1) for _ in range(100)]
+    assert currents[-1] > high + 1.0
+    currents += [core.command(reach[0], None, 0.1) for _ in range(100)]
+    assert currents[-1] < low - 1.0
+    beyond = np.array([c - high if c > high else c - low if c < low else 0.0 for c in currents])
+    assert np.max(np.abs(np.diff(beyond[1:]))) <= 0.1 + 1e-12
+    assert np.max(np.abs(np.diff(currents[1:]))) >= high - low, "the band crossed in one step"
 
 
 def test_a_core_that_continues_another_moves_the_current_from_its_last_command_within_the_rate_limit():

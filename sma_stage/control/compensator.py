@@ -14,7 +14,13 @@ measurement is given (feedback):
                 measurement; without one, feedforward_lead_limit while the setpoint moves and
                 feedforward_step_lead_limit otherwise (drive = v* without a lag), clipped to the
                 current limit, and changed by at most max_rate_a_per_s * dt from the previous
-                command (0: no rate limit)
+                command (0: no rate limit) outside the model's dead band
+
+The dead band (`dead_band_a`): the currents around zero where, in the model, neither wire moves the stage (a
+wire heated below its transformation). The rate limit counts a change of the current only outside it, so the
+hand-over from one wire to the other crosses it in one step: where the wires move only beyond +-0.75 A, a 1 A/s
+rate limit took 1.5 s to cross to the other wire at each reversal, the stage standing still meanwhile
+(bench/bench_positioning.py's plants; the table and the commit that added this have the figures).
 
 Why the play, the lead limit and the rate limit: the exact inverse of a hysteretic model jumps across
 the loop's width at every reversal of its target, and the exact lead multiplies a change of v* by
@@ -45,7 +51,12 @@ Why: the exact inverse answers a reversal of its target, however small, with a j
 loop, and where the stage's minor loops are narrower than the model's that jump moves the stage further
 than the error that caused it: a held setpoint limit-cycled (the simulator with the shipped model, 0.4 s
 control period: 2-5 um peak to peak, the current swinging 1.2-3.5 A at the rate limit). The linear path has
-no jump; a change of the setpoint, or a target beyond the model's reach, frees the inverse again.
+no jump; a change of the setpoint, or a target beyond the model's reach, frees the inverse again. While the linear
+path acts, a copy of the model runs on the whole command (the inverse's model sees only its own share); when the
+setpoint changes, that copy becomes the model and the integral is set so that the loop's target for the setpoint
+before is what the copy predicts, so the current does not jump. Without it the inverse resumed from a state that had
+not seen the linear path's current: on the second physical stage (bench/bench_positioning.py's `nominal`) that state
+was 5 % of the stroke from the stage after a 60 s hold, and the 250 s sine that followed began 10 % of the stroke off.
 
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
 (sma_stage.model.effects):
@@ -74,9 +85,10 @@ the same lead limits, rate limit, play and PI loop apply around it.
 from __future__ import annotations
 
 import bisect
+import copy
 import math
 
-from sma_stage.control.drives import Drive, drive_for, model_tau_s, reach_span_m
+from sma_stage.control.drives import Drive, dead_band_a, drive_for, model_tau_s, reach_span_m
 from sma_stage.errors import InputError, finite_number
 from sma_stage.model.effects import lag_drive_for, lag_step
 from sma_stage.model.kinds import AnyModel, StreamModel
@@ -267,6 +279,7 @@ class Compensator:
         self._hold_s = 0.0
         self._setpoint = _SetpointMotion()
         self._amps_per_m = 2.0 * self._limit / reach_span_m(self.drive)
+        self._dead_band = dead_band_a(self._model, self._limit)
         self._release_inverse()
 
     def _release_inverse(self) -> None:
@@ -276,6 +289,7 @@ class Compensator:
         self._inverse_direction = 0
         self._linear_a = 0.0  # the linear path's share of the last command [A]
         self._linear_lag_a = 0.0  # that share through a first-order lag of the model's tau [A]
+        self._true_drive: Drive | None = None  # the model run on the whole command while the linear path acts
 
     def continue_from(self, previous: Compensator) -> None:
         """Take over the loop of another core (the one this replaces, with another model): the last command, so
@@ -314,22 +328,25 @@ class Compensator:
         when above 0, else the previous hold; no lead before any)."""
         setpoint = self._bounded(finite_number("setpoint_m", setpoint_m))
         dt = _non_negative("dt_s", dt_s)
+        measured = None if measured_m is None else self._bounded(finite_number("measured_m", measured_m))
         if hold_s is not None:
             self._hold_s = _non_negative("hold_s", hold_s)
         elif dt > 0.0:
             self._hold_s = dt
+        held = measured is not None and setpoint == self._previous_setpoint
+        self._advance_models(held, measured, dt)
         self.target_m = setpoint
-        self._looped = measured_m is not None
-        if measured_m is not None:
-            self.target_m = self._pi_target(setpoint, self._bounded(finite_number("measured_m", measured_m)), dt)
+        self._looped = measured is not None
+        if measured is not None:
+            self.target_m = self._pi_target(setpoint, measured, dt)
         moving = self._setpoint.moves(setpoint, dt)
         limit = self._lead_limit
-        if measured_m is None:
+        if measured is None:
             limit = self._feedforward_lead_limit if moving else self._feedforward_step_lead_limit
-        held = measured_m is not None and setpoint == self._previous_setpoint
         self._previous_setpoint = setpoint
         inverse_target, reversal_m = self._split_reversal(self.target_m, held)
-        self.drive.advance(self.command_a - self._linear_a, dt)
+        if reversal_m != 0.0 and self._true_drive is None:
+            self._true_drive = copy.deepcopy(self.drive)  # its state is the stage's: the linear path was at rest
         current, self.saturated = self.drive.current_for(inverse_target, self._hold_s, limit)
         if self.saturated or self.drive.out_of_reach:
             self._inverse_direction = 0
@@ -341,6 +358,28 @@ class Compensator:
         self._linear_a = bounded - min(self._limit, max(-self._limit, current))
         self.command_a = self._rate_limited(bounded, dt)
         return self.command_a
+
+    def _advance_models(self, held: bool, measured: float | None, dt: float) -> None:
+        """Step the model over the dt [s] the last command was held: the inverse's model with its share of it, and
+        while the linear path carries a part, the true model with all of it. When the setpoint no longer holds, the
+        true model takes over, and the integral is set so that the loop's target for the setpoint before is what
+        it predicts: no jump of the current (see the module's docstring)."""
+        if self._true_drive is None:
+            self.drive.advance(self.command_a - self._linear_a, dt)
+            return
+        self._true_drive.advance(self.command_a, dt)
+        if held:
+            self.drive.advance(self.command_a - self._linear_a, dt)
+            return
+        before = self._previous_setpoint
+        self.drive, self._true_drive = self._true_drive, None
+        if measured is not None and before is not None:
+            low, high = self.drive.target_bounds
+            reach = high - low
+            bumpless = self.drive.predicted_m - before - self._kp * (before - measured)
+            self.integral_m = min(reach, max(-reach, bumpless))
+            self._played_m = None
+        self._release_inverse()
 
     def _split_reversal(self, target_m: float, held: bool) -> tuple[float, float]:
         """(the target [m] the inverse gets, the part [m] of target_m that goes through the linear path): on a
@@ -375,14 +414,23 @@ class Compensator:
         return min(high, max(low, position_m))
 
     def _rate_limited(self, current: float, dt: float) -> float:
-        """The current moved from the previous command by at most max_rate_a_per_s * dt (dt 0: not at all),
-        except for the first command after a reset."""
+        """The current moved from the previous command by at most max_rate_a_per_s * dt (dt 0: not at all) beyond
+        the dead band, the band itself crossed at once; except for the first command after a reset."""
         first, self._commanded = not self._commanded, True
         rate = self._max_rate_a_per_s
         if rate == 0.0 or first:
             return current
-        previous = self.command_a
-        return min(previous + rate * dt, max(previous - rate * dt, current))
+        wanted, previous = self._beyond_band(current), self._beyond_band(self.command_a)
+        allowed = min(previous + rate * dt, max(previous - rate * dt, wanted))
+        if allowed == wanted:
+            return current
+        low, high = self._dead_band
+        return high + allowed if allowed > 0.0 or (allowed == 0.0 and wanted > 0.0) else low + allowed
+
+    def _beyond_band(self, current: float) -> float:
+        """How far [A] a current lies beyond the dead band (negative below it, 0 within it)."""
+        low, high = self._dead_band
+        return current - high if current > high else current - low if current < low else 0.0
 
     def follow_applied(self, current_a: float, dt_s: float) -> None:
         """Step the model's states with a current [A] the stage applied for dt_s [s] that this compensator

@@ -28,6 +28,10 @@ from sma_stage.model.inverse import TARGET_MARGIN_SPANS
 from sma_stage.model.kinds import AnyModel, StreamModel
 
 SETTLED_TAUS = 30.0  # a hold this many time constants long is a steady state (e^-30: 1e-13)
+DEAD_BAND_SLOPE = 0.1  # a current where the model's output moves by less than this share of its mean slope is dead
+DEAD_BAND_BINS = 40  # the current range is looked at in this many bins
+DEAD_BAND_PERIODS_TAU = 40.0  # the major loop the dead band is read from: a sine this many time constants long
+DEAD_BAND_MIN_PERIOD_S = 400.0  # (at least this long), its third period
 
 
 class Drive(Protocol):
@@ -256,3 +260,30 @@ def _stream_reach(model: StreamModel, max_current_a: float, tau_s: float) -> tup
     if not span > 0.0:
         raise InputError("the model's output does not move with the current: it cannot be inverted")
     return low, high
+
+
+def dead_band_a(model: AnyModel, max_current_a: float) -> tuple[float, float]:
+    """The currents (low <= 0 <= high) [A] around zero where neither wire moves the stage in the model: along its
+    major loop (a slow sine to +-max_current_a, from rest) the output moves by less than DEAD_BAND_SLOPE of its
+    mean slope in every bin of the range between them; (0, 0) when the bins either side of zero move it."""
+    period = max(DEAD_BAND_MIN_PERIOD_S, DEAD_BAND_PERIODS_TAU * model_tau_s(model))
+    t = np.linspace(0.0, 3.0 * period, 6001)
+    u = max_current_a * np.sin(2.0 * np.pi * t / period)
+    y = model.predict(t, u)
+    last = t >= 2.0 * period
+    current, du, dy = u[last][1:], np.diff(u[last]), np.diff(y[last])
+    mean_slope = float(np.ptp(y[last])) / (2.0 * max_current_a)
+    edges = np.linspace(-max_current_a, max_current_a, DEAD_BAND_BINS + 1)
+    bins = np.clip(np.searchsorted(edges, current, side="right") - 1, 0, DEAD_BAND_BINS - 1)
+    moving = np.abs(du) > 0.0
+    dead = np.array([np.median(np.abs(dy[moving & (bins == b)] / du[moving & (bins == b)]))
+                     < DEAD_BAND_SLOPE * mean_slope for b in range(DEAD_BAND_BINS)])
+    middle = DEAD_BAND_BINS // 2
+    if not (dead[middle - 1] and dead[middle]):
+        return 0.0, 0.0
+    low, high = middle - 1, middle
+    while low > 0 and dead[low - 1]:
+        low -= 1
+    while high < DEAD_BAND_BINS - 1 and dead[high + 1]:
+        high += 1
+    return float(edges[low]), float(edges[high + 1])
