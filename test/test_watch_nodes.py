@@ -34,7 +34,8 @@ PERIOD_S = 100.0  # the tracked sine's
 COMPARED_S = 300.0  # tracking error compared over this long before the step and after the swap
 TRACKING_RATIO = 1.5  # the tracking error after the swap at most this times the error before the step
 # At 50x the position reaches the loop a part of a 0.5 s step late, so each pass along the path differs and the GPI's
-# residual wanders some fifty times more than in process (bias_held_out_m 5-10 um against 0.1 um): with the
+# residual wanders many times more than in process (bias_held_out_m 2.6-2.9 um with the current stamped with its
+# position, 5-10 um timed by its arrival, against 0.1 um in process): timed by arrival, with the
 # default 10 s windows the bias test tripped before the step in 1 of 3 runs under load. 20 s windows (the watch's
 # defaults until 10 s were measured faster in process, docs/watch.md), 800 s of calibration.
 WATCH_WINDOWS = {"watch_window": 20.0, "watch_warmup_windows": 15, "watch_calibration_windows": 40}
