@@ -267,6 +267,7 @@ class Compensator:
         method = self._method if method is None else method
         drive_for(model, limit, method)  # checked whole before anything changes
         self._model, self._limit, self._method = model, limit, method
+        self._dead_band = dead_band_a(model, limit)  # the model's and the limit's only: not again on each reset
         self.reset()
 
     def reset(self) -> None:
@@ -283,7 +284,6 @@ class Compensator:
         self._hold_s = 0.0
         self._setpoint = _SetpointMotion()
         self._amps_per_m = 2.0 * self._limit / reach_span_m(self.drive)
-        self._dead_band = dead_band_a(self._model, self._limit)
         self._release_inverse()
 
     def _release_inverse(self) -> None:
