@@ -1,5 +1,6 @@
 """Data I/O: CSV and rosbag2 reading and writing, the Series checks, zero-order-hold alignment."""
 
+import math
 import os
 import shutil
 import stat
@@ -502,6 +503,21 @@ def test_a_bag_with_the_current_in_joint_states_effort_reads_the_pair_stamped_to
     mixed = load_series(tmp_path / "mixed")
     assert "/current_cmd" in mixed.source
     assert np.array_equal(mixed.input, by_arrival.input)
+
+
+def test_a_bag_whose_effort_is_not_finite_reads_the_input_topic_or_says_in_one_line_what_is_missing(tmp_path):
+    """A NaN effort is no current: the bag reads the input topic as an older stage's; without one, one line."""
+    path = tmp_path / "nan_effort"
+    with BagRecorder(path, input_topic="current_cmd") as recorder:
+        for k in range(40):
+            stamp = 10**18 + k * 10_000_000
+            recorder.write_input(stamp, 0.1 * k)
+            recorder.write_output(stamp, 1e-5 * k, effort=math.nan if k == 7 else 0.1 * k)
+    series = load_series(path)
+    assert "/current_cmd" in series.source and np.all(np.isfinite(series.input))
+    with pytest.raises(InputError, match="current_applied") as refused:
+        load_series(path, input_topic="current_applied")
+    assert "\n" not in str(refused.value)
 
 
 def test_csv_with_byte_order_mark_and_crlf_lines(tmp_path):
