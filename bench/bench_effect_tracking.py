@@ -61,7 +61,7 @@ def diagnose_with_gpi_tool(case: synthetic.Case, folder: Path) -> tuple[Identifi
     if status != 0:
         raise SystemExit(f"gpi_tool diagnose failed with status {status}")
     report = json.loads((out / "report.json").read_text())
-    plain = IdentifiedModel(GPIParameters.from_dict(report["model"]["parameters"]), report["model"]["operators"])
+    plain = IdentifiedModel(GPIParameters.from_dict(report["gpi_fit"]["parameters"]), report["gpi_fit"]["operators"])
     ident = case.identification
     _, state = plain.run(ident.t, ident.u)
     return load_model_file(out / "model.yaml"), IdentifiedModel(plain.parameters, plain.operators, (), state), report

@@ -128,7 +128,9 @@ def add_data_arguments(parser: argparse.ArgumentParser, validate_required: bool)
     """DATA, --validate and the options that say how to read them, --operators, --out, --json."""
     parser.add_argument("data", type=Path, metavar="DATA", help="CSV file (t,input,output) or rosbag2 directory")
     validation = parser.add_mutually_exclusive_group(required=validate_required)
-    validation.add_argument("--validate", type=Path, metavar="DATA", help="validation data, same form as DATA")
+    validation.add_argument("--validate", type=Path, metavar="DATA", action="append",
+                            help="validation data, same form as DATA; give it again for more records (each "
+                                 "reported; the model family is chosen on the record it predicts worst)")
     validation.add_argument("--holdout", type=fraction, metavar="FRACTION",
                             help="validate on this last fraction of DATA instead, every model run over all of it "
                                  "(as ~/refit does with its holdout_fraction)")
@@ -180,6 +182,8 @@ def run_excitation(args: argparse.Namespace) -> dict:
 
     report = excitation_command(args)
     if not args.json:
+        if "probe_summary" in report:
+            print(f"the probe found: {report['probe_summary']}", file=sys.stderr)
         print(f"wrote {report['samples']} samples of the {report['kind']} excitation to {report['file']}",
               file=sys.stderr)
     return report

@@ -61,14 +61,21 @@ def designed_schedule(max_current_a: float = 5.0, duration_s: float = IDENTIFICA
     return np.array(times), np.array(levels)
 
 
-def designed_identification_signal(t: np.ndarray, max_current_a: float = 5.0,
-                                   duration_s: float = IDENTIFICATION_DURATION_S, seed: int = 0) -> np.ndarray:
-    """The designed identification signal [A] at times t [s]: designed_schedule's breakpoints joined by
-    raised-cosine ramps (smooth, so a lag sees no steps); zero after duration_s."""
+def joined_by_raised_cosines(t: np.ndarray, times: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """The current [A] at times t [s] through breakpoints (times [s], levels [A]) joined by raised-cosine ramps
+    (smooth, so a lag sees no steps); zero before the first breakpoint and after the last."""
     t = np.asarray(t, dtype=float)
-    times, levels = designed_schedule(max_current_a, duration_s, seed)
     index = np.clip(np.searchsorted(times, t, side="right") - 1, 0, times.size - 2)
     start, end = times[index], times[index + 1]
     fraction = np.clip((t - start) / np.maximum(end - start, 1e-12), 0.0, 1.0)
     value = levels[index] + (levels[index + 1] - levels[index]) * 0.5 * (1.0 - np.cos(np.pi * fraction))
-    return np.where((t >= 0.0) & (t <= duration_s), value, 0.0)
+    return np.where((t >= times[0]) & (t <= times[-1]), value, 0.0)
+
+
+def designed_identification_signal(t: np.ndarray, max_current_a: float = 5.0,
+                                   duration_s: float = IDENTIFICATION_DURATION_S, seed: int = 0) -> np.ndarray:
+    """The designed identification signal [A] at times t [s]: designed_schedule's breakpoints joined by
+    raised-cosine ramps; zero after duration_s."""
+    times, levels = designed_schedule(max_current_a, duration_s, seed)
+    t = np.asarray(t, dtype=float)
+    return np.where(t <= duration_s, joined_by_raised_cosines(t, times, levels), 0.0)

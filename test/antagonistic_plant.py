@@ -69,6 +69,9 @@ VARIANTS = {
     "hot_alloy": Stage(austenite_start_k=345.0, austenite_finish_k=372.0, martensite_start_k=330.0,
                        martensite_finish_k=303.0),
     "stiff_flexure": Stage(flexure_n_per_m=120.0e3, prestrain=0.045),
+    # pre-strained hard, with a strong stress shift: held currents below about 4.2 A do not move it, so the
+    # paper's decaying sine (5 A falling to 3.6 A) stops moving it after its first cycles
+    "prestrained": Stage(prestrain=0.06, clausius_pa_per_k=3.0e6),
 }
 
 
@@ -228,6 +231,23 @@ def paper_identification(t: np.ndarray) -> np.ndarray:
 def paper_validation(t: np.ndarray) -> np.ndarray:
     """The paper's validation input 2.5 cos(0.01 pi t) + 2.5 cos(0.02 t) [A]."""
     return 2.5 * np.cos(0.01 * np.pi * t) + 2.5 * np.cos(0.02 * t)
+
+
+def random_levels(t: np.ndarray, seed: int = 0, hold_s: float = 60.0) -> np.ndarray:
+    """Held random levels [A]: a current drawn uniformly from -5 to 5 A, held hold_s each (steps)."""
+    levels = np.random.default_rng(100 + seed).uniform(-5.0, 5.0, int(np.max(t) // hold_s) + 1)
+    return levels[(np.asarray(t) // hold_s).astype(int)]
+
+
+def sine_sweep(t: np.ndarray, duration_s: float = 1000.0) -> np.ndarray:
+    """A sine sweep [A]: 4.5 A, its period falling from 200 s to 20 s (exponentially) over duration_s."""
+    start_hz, end_hz = 1.0 / 200.0, 1.0 / 20.0
+    rate = np.log(end_hz / start_hz) / duration_s
+    phase = 2.0 * np.pi * start_hz * (np.exp(rate * np.asarray(t)) - 1.0) / rate
+    return 4.5 * np.sin(phase)
+
+
+VALIDATION_SHAPES = {"paper": paper_validation, "random_levels": random_levels, "sine_sweep": sine_sweep}
 
 
 def records(stage: Stage, seed: int = 0, duration_s: float = 1000.0) -> dict[str, tuple[np.ndarray, ...]]:

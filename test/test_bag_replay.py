@@ -190,10 +190,10 @@ def test_replayed_bag_refits_as_the_offline_fit(player_factory, bag):
     assert answer.success and answer.message.startswith("refit ok: "), answer.message
     report = json.loads(report_json(player.identification.last_report))  # what ~/report carries
     fit = offline["fit"]
-    assert report["model"]["operators"] == fit.operators == OPERATORS
+    assert report["gpi_fit"]["operators"] == fit.operators == OPERATORS
     assert report["samples"] == {"identification": len(offline["ident"]),
                                  "validation": len(offline["series"]) - len(offline["ident"])}
-    assert_close(report["model"]["parameters"], fit.parameters.to_dict())
+    assert_close(report["gpi_fit"]["parameters"], fit.parameters.to_dict())
     assert_close(report["identification"], fit.identification.to_dict())
     assert_close(report["validation"], offline["validation"])
     print(f"{bag}: {len(messages)} messages replayed in {seconds:.2f} s ({recorded_s:.2f} s recorded, "
@@ -209,7 +209,7 @@ def test_gpi_tool_fits_the_head_of_a_bag_as_the_node_does(tmp_path):
                            "--json", "--out", str(tmp_path / "fit")], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout)
-    assert_close(report["model"]["parameters"], offline["fit"].parameters.to_dict())
+    assert_close(report["gpi_fit"]["parameters"], offline["fit"].parameters.to_dict())
     assert_close(report["identification"], offline["fit"].identification.to_dict())
 
 

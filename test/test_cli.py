@@ -35,7 +35,8 @@ def test_fit_prints_only_the_json_report_and_writes_the_model(data, tmp_path, ca
     captured = capsys.readouterr()
     report = json.loads(captured.out)
     assert set(report) >= {"model", "identification", "validation", "fit_seconds"}
-    assert report["model"]["operators"] == 10 and len(report["model"]["parameters"]) == 11
+    assert report["gpi_fit"]["operators"] == 10 and len(report["gpi_fit"]["parameters"]) == 11
+    assert report["model"]["kind"] == "gpi" and report["model"]["parameters"] == report["gpi_fit"]["parameters"]
     assert report["validation"]["samples"] == 600
     assert report["validation"]["max_pct"] < 4.0
     assert "gpi_tool:" in captured.err
@@ -109,6 +110,31 @@ def test_diagnose_fills_every_key_of_the_report(tmp_path, capsys):
     assert report["validation"]["rms_pct"] == diagnosis["before"]["validation"]["rms_pct"]
     for name in ("report.json", "report.md", "model.yaml", "diagnosis_loops.png", "diagnosis_correlations.png"):
         assert (tmp_path / "out" / name).exists()
+
+
+def test_diagnose_reports_every_validation_record_and_chooses_on_the_worst(data, tmp_path, capsys):
+    """--validate twice: each family is scored on both records, the report gives the written model's errors on
+    each, and the family chosen is the one whose worse record is best (within the parsimony margin, by BIC)."""
+    from sma_stage.identify.families import PARSIMONY
+    from sma_stage.signals import designed_identification_signal
+
+    ident, valid = data
+    second = write_gpi_csv(tmp_path / "levels.csv", lambda t: designed_identification_signal(t, 5.0, 1000.0, 3),
+                           seed=2)
+    assert main(["diagnose", str(ident), "--validate", str(valid), "--validate", str(second), "--families",
+                 "gpi,bouc_wen", "--rounds", "1", "--out", str(tmp_path / "out"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert [record["source"] for record in report["validation_records"]] == [str(valid), str(second)]
+    rows = [row for row in report["families"] if not row["not_fitted"]]
+    assert len(rows) == 2 and all(len(row["more_validation"]) == 1 for row in rows)
+    for row in rows:
+        assert row["worst_validation"]["rms_pct"] == max(row["validation"]["rms_pct"],
+                                                         row["more_validation"][0]["rms_pct"])
+    best = min(row["worst_validation"]["rms_pct"] for row in rows)
+    chosen = [row for row in rows if row["chosen"]]
+    assert len(chosen) == 1 and chosen[0]["worst_validation"]["rms_pct"] <= best * (1.0 + PARSIMONY)
+    assert report["model"]["kind"] == ("gpi" if chosen[0]["family"] == "gpi" else "bouc_wen")
+    assert "worst validation record" in (tmp_path / "out" / "report.md").read_text()
 
 
 def test_diagnose_needs_validation_data(tmp_path, capsys):

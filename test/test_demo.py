@@ -55,10 +55,10 @@ def test_the_demo_says_which_family_the_refit_deployed_and_passes_its_families_t
     diagnosis = {"before": {"validation": {"rms_pct": 8.5}}, "after": {"validation": {"rms_pct": 1.9}},
                  "effects": ["thermal_lag"]}
     line = describe_diagnosis({"diagnosis": diagnosis, "families": rows,
-                               "identified_model": {"kind": "two_wire", "parameters": {}}})
+                               "model": {"kind": "two_wire", "parameters": {}}})
     assert "gpi 1.90 %, two_wire 1.50 %" in line and line.endswith("two-wire, 4 operators per wire went to the "
                                                                    "compensator")
-    gpi = {"diagnosis": diagnosis, "identified_model": {"effects": []}}
+    gpi = {"diagnosis": diagnosis, "model": {"effects": []}}
     assert describe_diagnosis(gpi).endswith("the plain GPI went to the compensator")
 
 

@@ -148,7 +148,7 @@ def test_executables_excite_refit_push_and_track(tmp_path, stage_backend):
             assert report["samples"]["identification"] + report["samples"]["validation"] >= 60, "min_samples"
             assert report["diagnosis"]["effect"] in ("none", *EFFECT_NAMES)
             deployed = load_any_model_file(model_file)  # of the family the refit chose (every family by default)
-            assert deployed.without_state().to_dict() == report["identified_model"]
+            assert deployed.without_state().to_dict() == report["model"]
             held = any_model_from_yaml_text(client.get_parameters("compensator", ["model"])["model"])
             assert held == deployed, "the compensator holds the model written"
 

@@ -906,7 +906,7 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     assert report["identification"]["rms_pct"] < 25.0
     assert report["compensator"]["pushed"], report["compensator"]["message"]
     deployed = load_any_model_file(model_file)  # the chosen family's model (every family by default)
-    assert compensator.model == deployed and deployed.without_state().to_dict() == report["identified_model"]
+    assert compensator.model == deployed and deployed.without_state().to_dict() == report["model"]
     recorded = identification.snapshot()
     assert len(recorded) == report["samples"]["identification"] + report["samples"]["validation"], "buffer frozen"
     assert 450.0 < np.ptp(recorded.t) < 600.0, "the recording in stage seconds (the 500 s excitation), as the model"
@@ -1198,8 +1198,8 @@ def test_identification_refit_keeps_the_plain_fit_when_the_diagnosis_fails(ros, 
     report = published_report(ros)
     assert "diagnosis" not in report
     assert report["warnings"] == ["diagnosis failed, the plain GPI fit is kept: RuntimeError: a bug over two lines"]
-    fitted = GPIParameters.from_dict(report["model"]["parameters"])
-    assert report["identified_model"]["effects"] == [] and compensator.model == load_model_file(model_file)
+    fitted = GPIParameters.from_dict(report["gpi_fit"]["parameters"])
+    assert report["model"]["effects"] == [] and compensator.model == load_model_file(model_file)
     assert compensator.core.drive.inverse.params == fitted
 
 
@@ -1215,7 +1215,32 @@ def test_identification_refit_without_a_compensator_warns_in_the_report(ros, tmp
     report = published_report(ros)
     assert not report["compensator"]["pushed"]
     assert any("no_such_compensator" in warning for warning in report["warnings"])
-    assert report["model_file"] is None and report["identified_model"]["operators"] == 5
+    assert report["model_file"] is None and report["model"]["operators"] == 5
+
+
+def test_identification_refit_scores_every_validation_file_and_refuses_one_it_cannot_read(ros, tmp_path):
+    """validation_files: each record is scored beside the held-out tail and reported; a file that cannot be read
+    refuses the refit in one line, naming it, and nothing is written or pushed."""
+    t = np.linspace(0.0, 60.0, 300)
+    current = 4.0 * np.sin(2.0 * np.pi * t / 30.0)
+    path = tmp_path / "levels.csv"
+    np.savetxt(path, np.c_[t, current, np.tanh(current / 3.0) * 1e-4], delimiter=",", header="t,input,output",
+               comments="")
+    model_file = tmp_path / "model.yaml"
+    identification = identification_node(ros, min_samples=50, push_timeout=0.2, operators=5, families=["gpi"],
+                                         model_file=str(model_file), validation_files=f"{path}, {tmp_path / 'no.csv'}")
+    fake = FakeStage(ros, identification)
+    fake.publish(4.0 * np.sin(np.linspace(0.0, 4.0 * np.pi, 120)), effort=True)
+    wait_until(lambda: len(identification.outputs) == 120, 5.0, "120 recorded positions")
+    refused = refit_answer(ros, fake.node)
+    assert not refused.success and "validation_files:" in refused.message and "no.csv" in refused.message
+    assert "\n" not in refused.message and not model_file.exists()
+    identification.set_parameters([Parameter("validation_files", value=str(path))])
+    answer = refit_answer(ros, fake.node)
+    assert answer.success, answer.message
+    records = published_report(ros)["validation_records"]
+    assert [record["source"] for record in records][1:] == [str(path)] and records[1]["rms_pct"] < 5.0
+    assert "held-out tail" in records[0]["source"] and model_file.exists()
 
 
 def test_the_compensator_keeps_silent_while_the_excitation_owns_current_cmd(ros):
@@ -1589,13 +1614,14 @@ def test_closing_a_worker_service_while_a_call_unwinds_raises_nothing_in_its_thr
     assert not raised, raised
 
 
-def test_excite_drives_the_designed_signal_when_asked(ros):
-    """excite_signal designed: the first commands follow signals.designed_identification_signal; a value the node
-    does not know is refused by ~/excite in one line."""
+def test_excite_designed_probes_first_and_stops_at_zero_when_the_probe_recorded_nothing(ros):
+    """excite_signal designed: the first commands are the probe's (sma_stage.experiment.probe, a tenth of the
+    duration); with no stage there is nothing recorded to design from, so the excitation stops at 0 A and the
+    node says why. A value the node does not know is refused by ~/excite in one line."""
     from std_msgs.msg import Float64
     from std_srvs.srv import Trigger
 
-    from sma_stage.signals import designed_identification_signal
+    from sma_stage.experiment.probe import probe_signal
 
     node = identification_node(ros, excite_signal="designed", excite_amplitude_start=3.0, excite_duration=1000.0,
                                excite_time_scale=100.0, excite_rate_hz=50.0, pause_compensator=False)
@@ -1603,15 +1629,38 @@ def test_excite_drives_the_designed_signal_when_asked(ros):
     probe = ros.probe("designed_probe")
     probe.create_subscription(Float64, "current_cmd", lambda message: commands.append(message.data), 100)
     answer = ros.call(probe, Trigger, "/identification/excite")
-    assert answer.success and "designed signal up to 3 A" in answer.message
-    wait_until(lambda: len(commands) > 50, 10.0, "excitation commands")
-    node.stop_excitation()
-    expected = designed_identification_signal(np.arange(0.0, 1000.0, 0.1), 3.0, 1000.0)
-    assert max(abs(value) for value in commands) <= 3.0 + 1e-12
-    assert all(np.min(np.abs(expected - value)) < 0.05 for value in commands)
+    assert answer.success and "the probe (100 s)" in answer.message and "up to 3 A" in answer.message
+    wait_until(lambda: not node.exciting, 10.0, "the excitation to stop after its probe")
+    expected = probe_signal(np.arange(0.0, 100.0, 0.1), 3.0, 100.0)
+    assert len(commands) > 50 and max(abs(value) for value in commands) <= 3.0 + 1e-12
+    assert all(np.min(np.abs(expected - value)) < 1e-9 for value in commands[:-1])
+    wait_until(lambda: commands[-1] == 0.0, 2.0, "0 A after the stop")
+    assert node.design is None
     node.set_parameters([Parameter("excite_signal", value="square")])
     refused = ros.call(probe, Trigger, "/identification/excite")
     assert not refused.success and refused.message.startswith("excite_signal must be one of paper, designed")
+
+
+def test_excite_designed_designs_from_the_probe_it_recorded_and_the_refit_reports_it(ros):
+    """Through the nodes on the simulated stage: the probe finds the lag and each wire's band, the rest of the
+    excitation stays within the current limit and reaches the band, and the refit's report carries the probe."""
+    stage_node(ros, rate_hz=100.0, time_scale=100.0, command_timeout=5.0)  # 1 s of stage time a cycle
+    identification = identification_node(ros, excite_signal="designed", excite_duration=600.0,
+                                         excite_time_scale=100.0, excite_rate_hz=50.0, min_samples=60,
+                                         max_held_out_rms_pct=100.0, push_timeout=0.1, operators=5)
+    probe = ros.probe()
+    wait_until(lambda: identification.count_publishers("joint_states") >= 1, 5.0, "discovery")
+    assert ros.call(probe, Trigger, "identification/excite").success
+    wait_until(lambda: not identification.exciting, 30.0, "the excitation to end")
+    found = identification.probe
+    assert found is not None and identification.design is not None
+    assert 1.0 <= found.time_constant_s <= 30.0
+    assert all(band.moves and 0.0 <= band.start_a < band.end_a <= 5.0 for band in found.wires)
+    times, levels = identification.design
+    assert np.max(np.abs(levels)) <= 5.0 + 1e-12 and times[-1] == pytest.approx(540.0)
+    answer = refit_answer(ros, probe)
+    assert answer.success, answer.message
+    assert published_report(ros)["probe"]["time_constant_s"] == pytest.approx(found.time_constant_s)
 
 
 def test_compensator_runs_a_two_wire_model_from_its_file_or_pushed_and_keeps_it_on_a_bad_method(ros, tmp_path):

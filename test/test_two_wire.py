@@ -401,7 +401,7 @@ def test_the_pipeline_compares_the_families_and_keeps_the_gpi_beside_a_chosen_tw
     assert rows["two_wire"]["validation"]["rms_pct"] < rows["gpi"]["validation"]["rms_pct"]
     assert isinstance(found.model, TwoWireModel) and found.model.state is not None
     assert isinstance(found.gpi_model, IdentifiedModel) and found.gpi_model.state is not None
-    assert found.report["identified_model"]["kind"] == "two_wire"
+    assert found.report["model"]["kind"] == "two_wire"
     assert list(found.report["compensation"]) == ["two_wire"]
     from sma_stage.identify.report import markdown_summary
 

@@ -9,16 +9,23 @@ import numpy as np
 
 from sma_stage.commands.simulate import MAX_SAMPLES
 from sma_stage.errors import InputError
+from sma_stage.experiment.design import designed_signal
+from sma_stage.experiment.probe import ProbeResult, analyse_probe, probe_signal
 from sma_stage.io.atomic import atomic_write_text
+from sma_stage.io.load import load_series
 from sma_stage.signals import designed_identification_signal, paper_identification_signal
 
-KINDS = ("paper", "designed")
+KINDS = ("paper", "designed", "probe")
+DEFAULT_DURATION_S = {"paper": 1000.0, "designed": 1000.0, "probe": 100.0}
+DESIGNED_AFTER_PROBE_S = 900.0  # designed --probe: the default duration, so that probe and design make 1000 s
 
 
-def excitation(kind: str, duration_s: float, step_s: float, max_current_a: float = 5.0,
-               seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def excitation(kind: str, duration_s: float, step_s: float, max_current_a: float = 5.0, seed: int = 0,
+               probe: ProbeResult | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(t [s], current [A]) of the named excitation: `paper`, the decaying sine scaled to max_current_a at its
-    start (5 A falling to 3.6 A at 5 A); `designed`, sma_stage.signals.designed_identification_signal."""
+    start (5 A falling to 3.6 A at 5 A); `probe`, sma_stage.experiment.probe's held currents up to
+    max_current_a; `designed`, built on what a probe found (sma_stage.experiment.design) when one is given,
+    else sma_stage.signals.designed_identification_signal (fixed fractions of max_current_a)."""
     if kind not in KINDS:
         raise InputError(f"excitation must be one of {', '.join(KINDS)}, got {kind!r}")
     for name, value in (("--duration", duration_s), ("--step", step_s), ("--max-current", max_current_a)):
@@ -30,25 +37,50 @@ def excitation(kind: str, duration_s: float, step_s: float, max_current_a: float
     if kind == "paper":
         scale = max_current_a / 5.0
         return t, paper_identification_signal(t, 5.0 * scale, 3.6 * scale, duration_s=duration_s)
+    if kind == "probe":
+        return t, probe_signal(t, max_current_a, duration_s)
+    if probe is not None:
+        return t, designed_signal(t, probe, duration_s, seed)
     return t, designed_identification_signal(t, max_current_a, duration_s, seed)
 
 
+def read_probe(path: str) -> ProbeResult:
+    """What the probe recorded in a file (t, input, output: a CSV or a rosbag2) found."""
+    record = load_series(path)
+    return analyse_probe(record.t, record.input, record.output)
+
+
 def run_excitation(args: argparse.Namespace) -> dict:
-    """Write the excitation's CSV (columns t,input) atomically; what was written."""
-    t, current = excitation(args.kind, args.duration, args.step, args.max_current, args.seed)
+    """Write the excitation's CSV (columns t,input) atomically; what was written (and what the probe found)."""
+    if args.probe is not None and args.kind != "designed":
+        raise InputError(f"--probe is for the designed excitation, not {args.kind!r}")
+    probe = read_probe(args.probe) if args.probe is not None else None
+    duration = args.duration
+    if duration is None:
+        duration = DESIGNED_AFTER_PROBE_S if probe is not None else DEFAULT_DURATION_S[args.kind]
+    t, current = excitation(args.kind, duration, args.step, args.max_current, args.seed, probe)
     lines = ["t,input"] + [f"{time_s:.6f},{value:.9g}" for time_s, value in zip(t, current, strict=True)]
     atomic_write_text(args.out, "\n".join(lines) + "\n")
-    return {"file": str(args.out), "kind": args.kind, "samples": int(t.size), "step_s": args.step,
-            "max_current_a": float(np.max(np.abs(current)))}
+    report = {"file": str(args.out), "kind": args.kind, "samples": int(t.size), "step_s": args.step,
+              "max_current_a": float(np.max(np.abs(current)))}
+    if probe is not None:
+        report["probe"] = probe.as_dict()
+        report["probe_summary"] = probe.summary()
+    return report
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The excitation subcommand's options."""
-    parser.add_argument("kind", choices=KINDS, help="paper: the paper's decaying sine; designed: excursions of each "
-                                                    "wire to many peaks and reversal levels, with holds")
-    parser.add_argument("--duration", type=float, default=1000.0, help="seconds of signal (default 1000)")
+    parser.add_argument("kind", choices=KINDS, help="paper: the paper's decaying sine; probe: held currents on each "
+                                                    "wire that find its band and the lag; designed: reversal curves "
+                                                    "of each wire (over the band a recorded probe found, --probe)")
+    parser.add_argument("--duration", type=float, default=None,
+                        help="seconds of signal (default 1000; probe 100; designed --probe 900)")
     parser.add_argument("--step", type=float, default=0.2, help="sample period [s] (default 0.2)")
-    parser.add_argument("--max-current", type=float, default=5.0, help="the stage's current limit [A] (default 5)")
+    parser.add_argument("--max-current", type=float, default=5.0,
+                        help="the stage's current limit [A] (default 5; designed --probe: the probe's)")
     parser.add_argument("--seed", type=int, default=0, help="the designed signal's draw (default 0)")
+    parser.add_argument("--probe", type=str, default=None,
+                        help="designed: a recorded probe (t,input,output CSV or rosbag2) to design from")
     parser.add_argument("--out", type=str, required=True, help="CSV file to write")
     parser.add_argument("--json", action="store_true", help="print what was written as JSON")

@@ -106,12 +106,13 @@ def _resident_bytes() -> int:
 
 def run_fit(args: argparse.Namespace) -> dict:
     """Fit the GPI; validate on --validate data when given; write model.yaml, report.json/.md, fit.png."""
-    check_memory([args.data, args.validate])
+    check_memory([args.data, *(args.validate or [])])
     with RunFolder(args.out) as run:
         data = read_data(args.data, args)
-        valid = read_data(args.validate, args) if args.validate else None
+        valid, *more = [read_data(path, args) for path in args.validate] if args.validate else [None]
         found = identify_recording(data, valid, args.holdout, operators=args.operators, output_unit=args.unit,
-                                   progress=progress_line, source=str(args.data), max_fit_samples=args.max_fit_samples)
+                                   progress=progress_line, source=str(args.data), max_fit_samples=args.max_fit_samples,
+                                   more_validation=more)
         write_outputs(run.staging, found, "GPI fit")
         ident = data.split(1.0 - args.holdout)[0] if args.holdout else data
         valid_predicted = predict(found.fit, found.validation.input) if found.validation else None
@@ -123,15 +124,15 @@ def run_fit(args: argparse.Namespace) -> dict:
 def run_diagnose(args: argparse.Namespace) -> dict:
     """Fit, test the validation residual, add the effects the model lacks, compare the model families (all of
     them unless --families names some), report before and after; the model written is the chosen family's."""
-    check_memory([args.data, args.validate])
+    check_memory([args.data, *(args.validate or [])])
     with RunFolder(args.out) as run:
         data = read_data(args.data, args)
-        valid = read_data(args.validate, args) if args.validate else None
+        valid, *more = [read_data(path, args) for path in args.validate] if args.validate else [None]
         found = identify_recording(data, valid, args.holdout, operators=args.operators,
                                    diagnose_rounds=args.rounds, output_unit=args.unit, progress=progress_line,
                                    source=str(args.data), workers=args.workers,
                                    families=args.families or FAMILIES,
-                                   max_fit_samples=args.max_fit_samples)
+                                   max_fit_samples=args.max_fit_samples, more_validation=more)
         if found.diagnosis is None:
             raise InputError(found.warnings[0] if found.warnings else "the diagnosis did not run")
         write_outputs(run.staging, found, "GPI fit and residual diagnosis")

@@ -42,14 +42,20 @@ MOTION_SHARE = 0.05  # a part moves when its output spans at least this share of
 MIN_MOVING_SHARE = 0.10  # of the parts; a record moving in fewer does not excite the stage
 
 
+def moving_parts(y: np.ndarray) -> tuple[int, int]:
+    """(moving, all): the record cut into up to MOTION_PARTS parts, how many move over MOTION_SHARE of its span."""
+    parts = np.array_split(y, max(min(MOTION_PARTS, y.size // 4), 1))
+    moving = sum(float(np.ptp(part)) >= MOTION_SHARE * float(np.ptp(y)) for part in parts)
+    return moving, len(parts)
+
+
 def check_motion(y: np.ndarray) -> None:
     """InputError (one line) when the output moves over MOTION_SHARE of its span in fewer than MIN_MOVING_SHARE
     of the record's parts: a stage the input moved once, or a record mostly of a stage at rest."""
-    parts = np.array_split(y, max(min(MOTION_PARTS, y.size // 4), 1))
-    moving = sum(float(np.ptp(part)) >= MOTION_SHARE * float(np.ptp(y)) for part in parts)
-    if moving < MIN_MOVING_SHARE * len(parts):
+    moving, parts = moving_parts(y)
+    if moving < MIN_MOVING_SHARE * parts:
         raise InputError(f"no excitation: the output moved over {100 * MOTION_SHARE:g} % of its span in only "
-                         f"{100 * moving / len(parts):.0f} % of the record ({moving} of {len(parts)} parts); excite "
+                         f"{100 * moving / parts:.0f} % of the record ({moving} of {parts} parts); excite "
                          "over a wider current range, or record only while the stage is excited")
 
 

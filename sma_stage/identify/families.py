@@ -1,7 +1,8 @@
 """Model families compared on the same identification record: the GPI (with the effects its diagnosis added),
 the same GPI with free density weights, the two-wire model, and the Bouc-Wen model as a baseline from outside
-the Prandtl-Ishlinskii family. The choice: the lowest held-out RMS error, and among the families within PARSIMONY of
-it, the lowest BIC on the identification record (the simpler explanation when the held-out data cannot tell).
+the Prandtl-Ishlinskii family. The choice: the lowest held-out RMS error (with several validation records, on the
+record each family predicts worst), and among the families within PARSIMONY of it, the lowest BIC on the
+identification record (the simpler explanation when the held-out data cannot tell).
 """
 
 from __future__ import annotations
@@ -40,13 +41,25 @@ class FamilyRow:
     bic: float = float("nan")
     not_fitted: str = ""
     chosen: bool = False
+    more_validation: tuple[ErrorMetrics | None, ...] = ()  # on the further validation records, in their order
+
+    @property
+    def worst(self) -> ErrorMetrics | None:
+        """The errors on the validation record it predicts worst (by RMS): what the choice goes by (None: not
+        scored on every record)."""
+        every = (self.validation, *self.more_validation)
+        return None if any(errors is None for errors in every) else max(every, key=lambda errors: errors.rms_pct)
 
     def to_dict(self) -> dict[str, object]:
-        """The report's form."""
-        return {"family": self.family, "model": self.description, "parameters": self.parameters,
-                "identification": None if self.identification is None else self.identification.to_dict(),
-                "validation": None if self.validation is None else self.validation.to_dict(),
-                "bic": self.bic, "chosen": self.chosen, "not_fitted": self.not_fitted}
+        """The report's form (with more than one validation record: every record's errors, and the worst)."""
+        found = {"family": self.family, "model": self.description, "parameters": self.parameters,
+                 "identification": None if self.identification is None else self.identification.to_dict(),
+                 "validation": None if self.validation is None else self.validation.to_dict(),
+                 "bic": self.bic, "chosen": self.chosen, "not_fitted": self.not_fitted}
+        if self.more_validation:
+            found["more_validation"] = [None if errors is None else errors.to_dict() for errors in self.more_validation]
+            found["worst_validation"] = None if self.worst is None else self.worst.to_dict()
+        return found
 
 
 def check_families(names: Sequence[str]) -> tuple[str, ...]:
@@ -123,10 +136,11 @@ def fit_free_weights_row(gpi: IdentifiedModel, gpi_parameters: int, ident: Serie
 
 
 def choose(rows: Sequence[FamilyRow]) -> int | None:
-    """The index of the chosen row among those fitted and scored (None when none is)."""
-    scored = [index for index, row in enumerate(rows) if row.validation is not None and not row.not_fitted]
+    """The index of the chosen row among those fitted and scored (None when none is), by the errors on the
+    validation record each predicts worst."""
+    scored = [index for index, row in enumerate(rows) if row.worst is not None and not row.not_fitted]
     if not scored:
         return None
-    best = min(rows[index].validation.rms_pct for index in scored)
-    close = [index for index in scored if rows[index].validation.rms_pct <= best * (1.0 + PARSIMONY)]
+    best = min(rows[index].worst.rms_pct for index in scored)
+    close = [index for index in scored if rows[index].worst.rms_pct <= best * (1.0 + PARSIMONY)]
     return min(close, key=lambda index: rows[index].bic)

@@ -60,7 +60,7 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
                        operators: int | None = None, diagnose_rounds: int = 0, output_unit: str = "m",
                        progress: Progress = None, source: str = "", workers: int = 1,
                        families: Sequence[str] = ("gpi",), max_fit_samples: int | None = None,
-                       niceness: int = WORKER_NICENESS) -> Identification:
+                       niceness: int = WORKER_NICENESS, more_validation: Sequence[Series] = ()) -> Identification:
     """Identify the model of a record (t [s], input [A], output [output_unit]).
 
     Validation: a separate record (`validation`, run from an idle stage), or the held-out tail of this one
@@ -76,6 +76,11 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     family is fitted on the same record and the one chosen by held-out error and BIC is deployed; the report's
     "families" table says what each gave. The compensator runs the model of either family.
 
+    more_validation: further validation records (each run from an idle stage; beside `validation` or the held-out
+    tail): every family is scored on each of them too, from rest, and chosen on the record it predicts worst, so
+    that a choice cannot suit one shape of signal alone; the report's "validation_records" gives the deployed
+    model's errors on every record, the first validation first. The diagnosis traces the residual of the first.
+
     max_fit_samples (None: FIT_SAMPLES; 0: never): a longer record is fitted, diagnosed and compared on a copy
     thinned by whole blocks to at most that many samples (Series.thinned; a validation record with the same
     block); hysteresis and the wires' lag are slow next to the rates that make records that long. The model's
@@ -84,20 +89,23 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     """
     if validation is not None and holdout_fraction is not None:
         raise InputError("give validation data or a holdout fraction, not both")
+    if more_validation and validation is None and holdout_fraction is None:
+        raise InputError("further validation records need a first one (validation data or a holdout fraction)")
     families = check_families(families)
     with Workers(workers, niceness) as pool:
         if diagnose_rounds > 0 or families != ("gpi",):
             pool.start()  # the processes load their kernels while this one fits the GPI
         return _identify(record, validation, holdout_fraction, operators, diagnose_rounds, output_unit, progress,
-                         source, families, max_fit_samples, pool)
+                         source, families, max_fit_samples, pool, tuple(more_validation))
 
 
 def _identify(record: Series, validation: Series | None, holdout_fraction: float | None, operators: int | None,
               diagnose_rounds: int, output_unit: str, progress: Progress, source: str, families: tuple[str, ...],
-              max_fit_samples: int | None, pool: Workers) -> Identification:
+              max_fit_samples: int | None, pool: Workers, more: tuple[Series, ...]) -> Identification:
     full_record, full_validation = record, validation
     block = _thinning_block(len(record), FIT_SAMPLES if max_fit_samples is None else max_fit_samples)
     record, validation = record.thinned(block), validation.thinned(block) if validation is not None else None
+    more = tuple(series.thinned(block) for series in more)
     ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
     compared = families != ("gpi",) and valid is not None and float(np.ptp(valid.output[scored_from:])) > 0.0
     held_out = HeldOut(valid.t, valid.input, valid.output, scored_from) if compared else None
@@ -127,7 +135,7 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
     chosen = None
     if errors is not None and compared:
         chosen = _compare_families(families, fit, found, errors, ident, valid, scored_from, held, report, progress,
-                                   pool)
+                                   pool, more)
         if chosen is not None:
             carried = chosen.start_state(continued.t, continued.input, start) if isinstance(chosen, IdentifiedModel) \
                 else None
@@ -144,7 +152,10 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
         report["thinned"] = _thinned_entry(model, start.start if start is not None else Start("rest"), full_record,
                                            full_validation, holdout_fraction, block, len(record), scored_from)
         warnings.extend(_thinning_cost(report["thinned"], held_out))
-    report["identified_model"] = model.without_state().to_dict()
+    if more and held_out is not None:
+        report["validation_records"] = [{"source": validation_source, **held_out}] + [
+            {"source": series.source, **errors_from_rest(model, series).to_dict()} for series in more]
+    report["model"] = model.without_state().to_dict()
     report["compensation"] = compensation_notes(model)
     report["warnings"] = list(warnings)
     return Identification(model, fit, found, report, warnings, valid, scored_from,
@@ -202,7 +213,7 @@ def refit_hysteresis(record: Series, model: IdentifiedModel, holdout_fraction: f
     metadata = {"source": source or record.source, "samples": len(record),
                 **_held_out_metadata(errors.rms_pct, record.output[scored_from:], record.output)}
     refitted = replace(refitted, state=end_state, metadata=metadata)
-    report["identified_model"] = refitted.without_state().to_dict()
+    report["model"] = refitted.without_state().to_dict()
     report["compensation"] = compensation_notes(refitted)
     report["warnings"] = []
     return Identification(refitted, fit, None, report, [], valid, scored_from)
@@ -259,12 +270,17 @@ def deployed_held_out(report: dict) -> dict | None:
     return diagnosis["after"]["validation"] if diagnosis is not None else report.get("validation")
 
 
+def errors_from_rest(model: AnyModel, series: Series) -> ErrorMetrics:
+    """The model's errors on a record (t [s], input [A], output) it runs from rest over."""
+    return error_metrics(series.output, model.without_state().predict(series.t, series.input))
+
+
 def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosis | None, errors: ErrorMetrics,
                       ident: Series, valid: Series, scored_from: int, held: dict[str, Pending], report: dict,
-                      progress: Progress, pool: Workers) -> AnyModel | None:
+                      progress: Progress, pool: Workers, more: tuple[Series, ...] = ()) -> AnyModel | None:
     """Fit the free-weight GPI (in the pool's processes, while the held-current families' fits, begun with `held`,
-    are finished) and fill report["families"]; the chosen family's model (without state) when it is not the GPI,
-    else None."""
+    are finished), score every family on the further validation records (`more`) and fill report["families"];
+    the chosen family's model (without state) when it is not the GPI, else None."""
     gpi = _gpi_row(fit, found, errors, ident)
     rows, models = [], []
     if "gpi" in families:
@@ -293,6 +309,12 @@ def _compare_families(families: tuple[str, ...], fit: FitResult, found: Diagnosi
     for row, model in held_rows:
         rows.append(row)
         models.append(model)
+    if more:
+        gpi_model = found.chain.model if found is not None else IdentifiedModel(fit.parameters, fit.operators)
+        rows = [replace(row, more_validation=tuple(
+            None if row.validation is None or (model is None and row.family != "gpi")
+            else errors_from_rest(model if model is not None else gpi_model, series) for series in more))
+            for row, model in zip(rows, models, strict=True)]
     chosen = choose(rows)
     if chosen is not None:
         rows[chosen] = replace(rows[chosen], chosen=True)

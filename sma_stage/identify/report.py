@@ -16,9 +16,10 @@ from sma_stage.model.parameters import MODEL_KIND
 
 
 def fit_report(fit: FitResult, validation: ErrorMetrics | None, validation_source: str) -> dict:
-    """The JSON document's model, identification, validation and fit_seconds keys."""
+    """The JSON document's gpi_fit (the plain GPI fit, with its standard errors), identification, validation and
+    fit_seconds keys; the pipeline adds `model`, the model chosen and written."""
     return {
-        "model": {
+        "gpi_fit": {
             "kind": MODEL_KIND,
             "operators": fit.operators,
             "output_unit": fit.parameters.output_unit,
@@ -39,7 +40,7 @@ def write_json(path: Path, report: dict) -> None:
 
 def markdown_summary(report: dict, title: str) -> str:
     """A person's one-page reading of the report."""
-    model = report["model"]
+    model = report["gpi_fit"]
     chosen = next((row for row in report.get("families") or [] if row["chosen"]), None)
     written = [] if chosen is None or chosen["family"] == "gpi" else [
         f"Model written (model.yaml): **{chosen['model']}**, chosen among the families below; model_gpi.yaml holds "
@@ -55,6 +56,11 @@ def markdown_summary(report: dict, title: str) -> str:
             errors = report[key]
             lines.append(f"| {key} | {errors['samples']} | {errors['rms_pct']:.3f} | {errors['max_pct']:.3f} |")
     lines += ["", f"Validation data: {report['validation_source']}. Fit time: {report['fit_seconds']:.2f} s."]
+    if report.get("validation_records"):
+        lines += ["", "The model written, run from rest on every validation record:", "",
+                  "| validation record | samples | RMS error [% of span] | max error [% of span] |", "|---|---|---|---|"]
+        lines += [f"| {record['source']} | {record['samples']} | {record['rms_pct']:.3f} | {record['max_pct']:.3f} |"
+                  for record in report["validation_records"]]
     if "diagnosis" in report:
         lines += diagnosis_markdown(report["diagnosis"])
     if report.get("families"):
@@ -67,16 +73,18 @@ def markdown_summary(report: dict, title: str) -> str:
 
 def families_markdown(families: list[dict]) -> list[str]:
     """The model families compared on the same record, the chosen one marked (its model is model.yaml)."""
+    several = any("worst_validation" in row for row in families)
+    worst_column = " worst validation record RMS / max % |" if several else ""
     lines = ["", "## Model families", "", "| family | model | parameters | identification RMS / max % | "
-             "validation RMS / max % | BIC | chosen |", "|---|---|---|---|---|---|---|"]
+             f"validation RMS / max % |{worst_column} BIC | chosen |", "|---" * (7 + several) + "|"]
     for row in families:
         if row["not_fitted"]:
-            lines.append(f"| {row['family']} | not fitted: {row['not_fitted']} | | | | | |")
+            lines.append(f"| {row['family']} | not fitted: {row['not_fitted']} |" + " |" * (5 + several))
             continue
-        ident, valid = (f"{errors['rms_pct']:.2f} / {errors['max_pct']:.1f}" if errors else "-"
-                        for errors in (row["identification"], row["validation"]))
+        ident, valid, worst = (f"{errors['rms_pct']:.2f} / {errors['max_pct']:.1f}" if errors else "-"
+                               for errors in (row["identification"], row["validation"], row.get("worst_validation")))
         lines.append(f"| {row['family']} | {row['model']} | {row['parameters']} | {ident} | {valid} | "
-                     f"{row['bic']:.0f} | {'**yes**' if row['chosen'] else ''} |")
+                     + (f"{worst} | " if several else "") + f"{row['bic']:.0f} | {'**yes**' if row['chosen'] else ''} |")
     return lines
 
 

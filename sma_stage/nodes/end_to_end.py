@@ -320,7 +320,7 @@ def describe_diagnosis(report: dict) -> str:
         scores = ", ".join(f"{row['family']} {row['validation']['rms_pct']:.2f} %" for row in families
                            if row["validation"])
         return line + f"families on the held-out tail: {scores}; the {chosen['model']} went to the compensator"
-    effects = report["identified_model"]["effects"]
+    effects = report["model"]["effects"]
     sent = ("the GPI with " + ", ".join(f"{effect['kind']} ({', '.join(f'{k} {v:.4g}' for k, v in effect['parameters'].items())})"
                                         for effect in effects) if effects else "the plain GPI")
     return line + f"{sent} went to the compensator"
@@ -397,7 +397,7 @@ def run_end_to_end(nodes: object, settings: EndToEndSettings, out_dir: Path, lau
         report, stroke = excite_and_refit(client, session, settings, nodes.check_running)
         refitted = time.monotonic()
         held = client.get_parameters("compensator", ["model"])["model"]
-        pushed = bool(held) and any_model_from_yaml_text(held).without_state().to_dict() == report["identified_model"]
+        pushed = bool(held) and any_model_from_yaml_text(held).without_state().to_dict() == report["model"]
         runs = track_with_both_models(client, session, stroke, settings, nodes.check_running,
                                       identified=bool(report["compensator"]["pushed"]))
     exits = nodes.stop_all()

@@ -50,6 +50,7 @@ import threading
 from collections import deque
 from pathlib import Path
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParametersAtomically
@@ -60,6 +61,7 @@ from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
 
 from sma_stage.errors import InputError
+from sma_stage.experiment.probe import ProbeResult
 from sma_stage.identify.families import check_families
 from sma_stage.identify.history import ModelHistory
 from sma_stage.identify.watch import DriftTest
@@ -117,6 +119,8 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
         self.outputs: deque[tuple[int, int, float, float]] = deque(maxlen=self.settings.max_samples)
         self.excite_start_ns: int | None = None
         self.excite_duration_s = self.settings.excite_duration
+        self.probe: ProbeResult | None = None  # what the designed excitation's probe found
+        self.design: tuple[np.ndarray, np.ndarray] | None = None  # the designed excitation's breakpoints
         self.excite_timer = None
         self.record_until_ns: int | None = None  # set when an excitation ends with freeze_after_excite
         self.refitting = False

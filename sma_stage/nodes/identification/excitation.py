@@ -8,9 +8,12 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
+from sma_stage.errors import InputError
+from sma_stage.experiment.design import design_schedule
+from sma_stage.experiment.probe import ProbeResult, analyse_probe, probe_duration_s, probe_signal
 from sma_stage.nodes._common import quiet_on_shutdown
 from sma_stage.nodes.identification.params import EXCITATIONS
-from sma_stage.signals import designed_identification_signal, paper_identification_signal
+from sma_stage.signals import joined_by_raised_cosines, paper_identification_signal
 
 
 class ExcitationRoom:
@@ -46,13 +49,14 @@ class ExcitationRoom:
             self.record_until_ns = None
         self.excite_start_ns = self.now_ns()
         self.excite_duration_s = duration_s
+        self.probe, self.design = None, None
         self.set_compensator_enabled(False)
         self.excite_timer = self.create_timer(1.0 / self.settings.excite_rate_hz,
                                               quiet_on_shutdown(self, self.on_excite_tick))
         self.on_excite_tick()
         if self.settings.excite_signal == "designed":
-            message = (f"exciting: the designed signal up to {self.settings.excite_amplitude_start:g} A, "
-                       f"{duration_s:g} s of signal time")
+            message = (f"exciting: the probe ({probe_duration_s(duration_s):g} s) and the signal designed from what "
+                       f"it finds, up to {self.settings.excite_amplitude_start:g} A, {duration_s:g} s of signal time")
         else:
             message = (f"exciting: {self.settings.excite_amplitude_start:g} A falling to "
                        f"{self.settings.excite_amplitude_end:g} A, period {self.settings.excite_period:g} s, "
@@ -85,12 +89,39 @@ class ExcitationRoom:
                                    + (" (buffer frozen until ~/clear or ~/excite)" if frozen else ""))
             return
         if self.settings.excite_signal == "designed":
-            value = designed_identification_signal(t, self.settings.excite_amplitude_start, duration)
+            value = self.designed_value(t)
+            if value is None:
+                return
         else:
             value = paper_identification_signal(t, self.settings.excite_amplitude_start,
                                                 self.settings.excite_amplitude_end,
                                                 self.settings.excite_period, duration)
         self.command_pub.publish(Float64(data=float(value)))
+
+    def designed_value(self, t: float) -> float | None:
+        """The designed excitation's current [A] at signal time t [s]: the probe's, then, once the probe has ended
+        and what it recorded is analysed, the design's; None when the probe found nothing to design on (the
+        excitation is then stopped at 0 A and the log says why)."""
+        limit, probe_s = self.settings.excite_amplitude_start, probe_duration_s(self.excite_duration_s)
+        if t < probe_s:
+            return float(probe_signal(t, limit, probe_s))
+        if self.design is None:
+            try:
+                self.probe = self.analyse_recorded_probe(probe_s)
+                self.design = design_schedule(self.probe, self.excite_duration_s - probe_s, self.settings.excite_seed)
+            except InputError as error:
+                self.command_pub.publish(Float64(data=0.0))
+                self.stop_excitation()
+                self.get_logger().error(f"excitation stopped after the probe: {error}")
+                return None
+            self.get_logger().info(f"the probe found: {self.probe.summary()}")
+        return float(joined_by_raised_cosines(t - probe_s, *self.design))
+
+    def analyse_recorded_probe(self, probe_s: float) -> ProbeResult:
+        """What the probe found, from the last probe_s seconds (stage time) of the recording."""
+        series = self.recording_snapshot(min_samples=20)
+        keep = series.t >= series.t[-1] - probe_s
+        return analyse_probe(series.t[keep], series.input[keep], series.output[keep])
 
     def on_abort_excitation(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Stop a running excitation now: current_cmd 0 A, the compensator enabled again; the buffer keeps what

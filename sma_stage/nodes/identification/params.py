@@ -21,6 +21,9 @@ IDENTIFICATION_PARAMS = [
           read_only=True),
     Param("min_samples", 100, "fewest aligned samples a refit accepts", 20, 10**8),
     Param("holdout_fraction", 0.25, "tail of the recording held out for validation", 0.05, 0.5),
+    Param("validation_files", "", "further validation records for ~/refit, comma-separated (CSV t,input,output or "
+          "rosbag2 directories, each run from an idle stage): every family is scored on them too and chosen on the "
+          "record it predicts worst; empty: the held-out tail alone"),
     Param("max_fit_samples", FIT_SAMPLES, "a longer recording is fitted on a copy thinned by whole blocks to at most "
           "this many samples, scored on every sample (0: never thin)", 0, 10**8),
     Param("operators", 10, "play operators of the fitted model (0: chosen by the fit)", 0, MAX_OPERATORS),
@@ -46,9 +49,10 @@ IDENTIFICATION_PARAMS = [
     Param("record_bag", "", "rosbag2 directory to record input_topic and joint_states into; empty: none"),
     Param("bag_storage", "mcap", f"rosbag2 storage: {' or '.join(STORAGES)} (mcap: Foxglove and PlotJuggler open it)"),
     Param("bag_overwrite", False, "replace an existing record_bag directory (when the bag is finished)"),
-    Param("excite_signal", "paper", "identification signal: paper (the decaying sine) or designed (each wire's "
-          "excursions to many peaks and reversal levels with holds, up to excite_amplitude_start; see gpi_tool "
-          "excitation)"),
+    Param("excite_signal", "paper", "identification signal: paper (the decaying sine) or designed (a probe of each "
+          "wire's band and lag, a tenth of excite_duration, then reversal curves over the band it found, up to "
+          "excite_amplitude_start; see gpi_tool excitation)"),
+    Param("excite_seed", 0, "the designed signal's draw", 0, 2**31 - 1),
     Param("excite_amplitude_start", 5.0, "identification signal amplitude at its start [A] (designed: its "
           "largest current)", 0.0, 20.0),
     Param("excite_amplitude_end", 3.6, "identification signal amplitude at its end [A]", 0.0, 20.0),

@@ -19,6 +19,7 @@ from sma_stage.identify.pipeline import (
 )
 from sma_stage.identify.workers import lower_priority
 from sma_stage.io.atomic import atomic_write_text
+from sma_stage.io.load import load_series
 from sma_stage.io.plain import strict_json
 from sma_stage.io.series import Series
 from sma_stage.model.kinds import AnyModel
@@ -124,12 +125,24 @@ class RefitRoom:
         """The identification pipeline on series with this node's settings (held-out tail, operators,
         diagnosis, families, thinning)."""
         return identify_recording(series, holdout_fraction=self.settings.holdout_fraction,
+                                  more_validation=self.validation_records(),
                                   operators=self.settings.operators or None,
                                   diagnose_rounds=self.settings.diagnose_rounds, source=source,
                                   workers=self.settings.diagnose_workers,
                                   families=self.settings.families,
                                   max_fit_samples=self.settings.max_fit_samples,
                                   niceness=self.refit_niceness())
+
+    def validation_records(self) -> list[Series]:
+        """The records validation_files names, read now; InputError naming the file that cannot be read."""
+        records = []
+        for path in (part.strip() for part in self.settings.validation_files.split(",")):
+            if path:
+                try:
+                    records.append(load_series(path, joint_name=self.settings.joint_name))
+                except InputError as error:
+                    raise InputError(f"validation_files: {path}: {error}") from None
+        return records
 
     def refit_niceness(self) -> int:
         """Nice levels a refit's thread and its worker processes run below the node's other threads."""
@@ -147,6 +160,8 @@ class RefitRoom:
         self.get_logger().info(f"~/refit: fitting {len(series)} samples")
         found = self.identify(series, "identification node ~/refit")
         report = found.report
+        if self.probe is not None:
+            report["probe"] = self.probe.as_dict()
         self.check_held_out(report, series)
         report["model_file"] = self.write_model(found.model)
         report["report_file"] = report_path(report["model_file"])

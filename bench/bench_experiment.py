@@ -1,0 +1,127 @@
+"""The designed experiment against the paper's signal, on every variant of test/antagonistic_plant.py (a physical
+stage the model code did not make). Per variant: the paper's decaying sine (1000 s), and for each seed the probe
+(100 s: gpi_tool excitation probe) followed on the same stage by the excitation designed from what the probe found
+(900 s: gpi_tool excitation designed --probe); each record identified as `gpi_tool diagnose` does (every family,
+validated on the paper's validation record), then the chosen model run from rest on three validation shapes, each
+on its own settled stage: the paper's validation signal, held random levels (60 s each) and a sine sweep (period
+200 s down to 20 s). Prints one table and writes it to bench/results/experiment.md.
+
+    .venv/bin/python bench/bench_experiment.py [--variants nominal,...] [--seeds 0,1,2,3,4] [--families ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "test"))
+sys.path.insert(0, str(REPO / "bench"))
+
+import antagonistic_plant as physical  # noqa: E402
+from record_results import recorded  # noqa: E402
+
+from sma_stage.experiment.design import designed_signal  # noqa: E402
+from sma_stage.experiment.probe import analyse_probe, probe_signal  # noqa: E402
+from sma_stage.identify.checks import moving_parts  # noqa: E402
+from sma_stage.identify.families import FAMILIES  # noqa: E402
+from sma_stage.identify.metrics import error_metrics  # noqa: E402
+from sma_stage.identify.pipeline import identify_recording  # noqa: E402
+from sma_stage.io import make_series  # noqa: E402
+
+PERIOD_S = physical.SAMPLE_PERIOD_S
+RECORD_S = 1000.0
+PROBE_S = 100.0
+LIMIT_A = 5.0
+
+
+def validation_records(stage: physical.Stage, seed: int) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(t, current, position) of each validation shape, each from its own settled stage."""
+    t = np.arange(0.0, RECORD_S, PERIOD_S)
+    found = {}
+    for number, (name, shape) in enumerate(physical.VALIDATION_SHAPES.items()):
+        current = shape(t, seed) if name == "random_levels" else shape(t)
+        found[name] = (t, current, physical.simulate(current, stage, seed + 20 + number))
+    return found
+
+
+def designed_record(stage: physical.Stage, seed: int, design_seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                                 str]:
+    """The probe and then the design from it, on one stage: (t, current, position, what the probe found)."""
+    t_probe = np.arange(0.0, PROBE_S, PERIOD_S)
+    probe_current = probe_signal(t_probe, LIMIT_A, PROBE_S)
+    probe_y = physical.simulate(probe_current, stage, seed + 5)
+    found = analyse_probe(t_probe, probe_current, probe_y)
+    t_design = np.arange(0.0, RECORD_S - PROBE_S, PERIOD_S)
+    current = np.r_[probe_current, designed_signal(t_design, found, RECORD_S - PROBE_S, design_seed)]
+    y = physical.simulate(current, stage, seed + 5)  # the same stage and noise: its first samples are the probe's
+    t = np.arange(0.0, RECORD_S, PERIOD_S)
+    return t, current, y, f"tau {found.time_constant_s:.1f} s, bands " + ", ".join(
+        f"{band.start_a:.1f}-{band.end_a:.1f} A" if band.moves else "none" for band in found.wires)
+
+
+def identified_errors(record: tuple, validation: tuple, shapes: dict, families: tuple[str, ...],
+                      rounds: int) -> tuple[str, dict[str, tuple[float, float]]]:
+    """The chosen model's description and its (RMS %, max %) on every validation shape."""
+    found = identify_recording(make_series(*record, "identification"), make_series(*validation, "validation"),
+                               diagnose_rounds=rounds, workers=2, families=families)
+    rows = [row for row in found.report.get("families") or [] if row["chosen"]]
+    described = rows[0]["model"] if rows else "GPI"
+    model = found.model.without_state()
+    errors = {}
+    for name, (t, u, y) in shapes.items():
+        metrics = error_metrics(y, model.predict(t, u))
+        errors[name] = (metrics.rms_pct, metrics.max_pct)
+    return described, errors
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--variants", default=",".join(physical.VARIANTS))
+    parser.add_argument("--seeds", default="0,1,2,3,4", help="the design's seeds")
+    parser.add_argument("--families", default=",".join(FAMILIES))
+    parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument("--noise-seed", type=int, default=0)
+    args = parser.parse_args()
+    families = tuple(args.families.split(","))
+    seeds = [int(seed) for seed in args.seeds.split(",")]
+    shape_names = list(physical.VALIDATION_SHAPES)
+    print("| variant | identified on | seed | moving % | model | " + " | ".join(f"{name} RMS / max %" for name in
+                                                                            shape_names) + " | worst RMS % | probe |")
+    print("|---" * (7 + len(shape_names)) + "|")
+    summary = []
+    for variant in args.variants.split(","):
+        stage = physical.VARIANTS[variant]
+        shapes = validation_records(stage, args.noise_seed)
+        t = np.arange(0.0, RECORD_S, PERIOD_S)
+        paper_current = physical.paper_identification(t)
+        runs = [("paper", "-", (t, paper_current, physical.simulate(paper_current, stage, args.noise_seed)), "")]
+        for seed in seeds:
+            *record, probed = designed_record(stage, args.noise_seed, seed)
+            runs.append(("designed", str(seed), tuple(record), probed))
+        for kind, seed, record, probed in runs:
+            started = time.perf_counter()
+            described, errors = identified_errors(record, shapes["paper"], shapes, families, args.rounds)
+            moving, parts = moving_parts(record[2])
+            worst = max(rms for rms, _ in errors.values())
+            summary.append((variant, kind, worst, max(top for _, top in errors.values())))
+            cells = " | ".join(f"{rms:.2f} / {top:.1f}" for rms, top in errors.values())
+            print(f"| {variant} | {kind} | {seed} | {100 * moving / parts:.0f} | {described} | {cells} | {worst:.2f} | "
+                  f"{probed} ({time.perf_counter() - started:.0f} s) |", flush=True)
+    print("\n| variant | identified on | records | worst-shape RMS %: mean, largest | worst-shape max %: largest |")
+    print("|---|---|---|---|---|")
+    for variant in dict.fromkeys(row[0] for row in summary):
+        for kind in ("paper", "designed"):
+            rows = [row for row in summary if row[0] == variant and row[1] == kind]
+            worst = np.array([row[2] for row in rows])
+            print(f"| {variant} | {kind} | {len(rows)} | {worst.mean():.2f}, {worst.max():.2f} | "
+                  f"{max(row[3] for row in rows):.1f} |")
+
+
+if __name__ == "__main__":
+    with recorded(__file__):
+        main()

@@ -1,0 +1,206 @@
+"""The probe: a short experiment that measures, from the stage itself, each wire's working band (the currents
+where heating starts and stops moving the stage) and the wires' thermal time constant. Wire a is heated by a
+positive current, wire b by a negative one.
+
+The schedule: each wire in turn climbs a staircase of held currents (STAIRS, fractions of the current limit),
+then both rest at zero (REST_SHARE of the duration). A held current relaxes the wire's temperature towards its
+steady value along one exponential, and the position follows it: each hold's position is fitted with
+c + a exp(-t / tau), which gives the time constant tau (the median over the holds that moved the stage) and the
+position the hold was heading for (c: the static position at that current, even when a hold is shorter than the
+lag). The band is where that static position crosses EDGE and 1 - EDGE of the wire's travel."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from sma_stage.errors import InputError
+from sma_stage.model.checks import as_signal, checked_record
+
+PROBE_SHARE = 0.10  # of an excitation's duration, by default
+MIN_PROBE_S = 40.0
+STAIRS = (0.4, 0.55, 0.7, 0.85, 1.0)  # held currents, fractions of the current limit
+REST_SHARE = 0.10  # of the probe's duration, after each wire's staircase
+TIME_CONSTANTS_S = np.geomspace(0.2, 200.0, 151)
+EDGE = 0.05  # of a wire's travel: where its band starts and ends
+MIN_TRAVEL_SHARE = 0.05  # of the probe's output span: a wire that moves the stage less does not move it
+MIN_HOLD_MOTION = 0.05  # of the wire's travel: a hold that moves the stage less says nothing of the lag
+NOISE_MULTIPLE = 10.0  # a motion smaller than this many times the sensor's noise is no motion
+MATCH_TOLERANCE = 0.10  # of the current limit: the recorded input's median distance from the probe's schedule
+WIRES = ("a", "b")
+
+
+@dataclass(frozen=True)
+class WireBand:
+    """What one wire does: heating moves the stage from start_a to end_a [A] (the static currents where its
+    position crosses EDGE and 1 - EDGE of its travel); travel [output units], the static motion from rest to the
+    current limit, signed; the held currents [A] and the static positions they were heading for."""
+
+    wire: str
+    moves: bool
+    travel: float
+    start_a: float
+    end_a: float
+    held_a: tuple[float, ...]
+    static: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class ProbeResult:
+    """What a probe found: the current limit [A], the thermal time constant [s] and each wire's band."""
+
+    max_current_a: float
+    time_constant_s: float
+    wires: tuple[WireBand, WireBand]
+
+    def as_dict(self) -> dict:
+        """The result as plain JSON-able values."""
+        def plain(value: object) -> object:
+            if isinstance(value, tuple):
+                return [plain(item) for item in value]
+            return None if isinstance(value, float) and not np.isfinite(value) else value
+
+        return {"max_current_a": self.max_current_a, "time_constant_s": plain(self.time_constant_s),
+                "wires": [{key: plain(value) for key, value in asdict(band).items()} for band in self.wires]}
+
+    def summary(self) -> str:
+        """One line for a log."""
+        parts = [f"time constant {self.time_constant_s:.1f} s"]
+        for band in self.wires:
+            if band.moves:
+                parts.append(f"wire {band.wire} moves the stage from {band.start_a:.2f} A to {band.end_a:.2f} A")
+            else:
+                parts.append(f"wire {band.wire} does not move the stage up to {self.max_current_a:g} A")
+        return "; ".join(parts)
+
+
+def _hold_s(duration_s: float) -> float:
+    return duration_s * (1.0 - 2 * REST_SHARE) / (2 * len(STAIRS))
+
+
+def probe_schedule(max_current_a: float, duration_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Breakpoints (times [s], currents [A]) of the probe: held currents, each a step (two breakpoints at one
+    time)."""
+    hold, rest = _hold_s(duration_s), REST_SHARE * duration_s
+    times, levels, start = [], [], 0.0
+    for sign in (1.0, -1.0):
+        for fraction in STAIRS:
+            times.extend([start, start + hold])
+            levels.extend([sign * fraction * max_current_a] * 2)
+            start += hold
+        times.extend([start, start + rest])
+        levels.extend([0.0, 0.0])
+        start += rest
+    return np.array(times), np.array(levels)
+
+
+def probe_signal(t: np.ndarray, max_current_a: float, duration_s: float) -> np.ndarray:
+    """The probe's current [A] at times t [s] from its start; zero outside [0, duration_s)."""
+    t = np.asarray(t, dtype=float)
+    times, levels = probe_schedule(max_current_a, duration_s)
+    index = np.clip(np.searchsorted(times, t, side="right") - 1, 0, times.size - 1)
+    return np.where((t >= 0.0) & (t < duration_s), levels[index], 0.0)
+
+
+def probe_duration_s(excitation_s: float) -> float:
+    """The probe's default duration [s] for an excitation of excitation_s [s]: PROBE_SHARE of it, at least
+    MIN_PROBE_S."""
+    return max(PROBE_SHARE * excitation_s, MIN_PROBE_S)
+
+
+def _exponential_fit(elapsed: np.ndarray, y: np.ndarray, time_constant_s: float) -> tuple[float, float]:
+    """(squared error, final value c) of the least-squares fit y = c + a exp(-elapsed / time_constant_s)."""
+    basis = np.c_[np.ones_like(elapsed), np.exp(-elapsed / time_constant_s)]
+    coefficients, *_ = np.linalg.lstsq(basis, y, rcond=None)
+    return float(np.sum((basis @ coefficients - y) ** 2)), float(coefficients[0])
+
+
+def fit_relaxation(t: np.ndarray, y: np.ndarray) -> float:
+    """The time constant [s] of y(t) = c + a exp(-(t - t[0]) / tau) that fits best, over TIME_CONSTANTS_S."""
+    costs = [_exponential_fit(t - t[0], y, tau)[0] for tau in TIME_CONSTANTS_S]
+    return float(TIME_CONSTANTS_S[int(np.argmin(costs))])
+
+
+def _segments(t: np.ndarray, duration_s: float) -> list[tuple[int, float, slice]]:
+    """(wire, held current as a fraction of the limit, samples) of every hold and rest, in order; each slice
+    leaves out the first sample (the position before the step)."""
+    times, levels = probe_schedule(1.0, duration_s)
+    found = []
+    for start, end, level in zip(times[::2], times[1::2], levels[::2], strict=True):
+        first, last = np.searchsorted(t, [start, end])
+        wire = 0 if level > 0.0 else 1 if level < 0.0 else -1
+        found.append((wire, abs(float(level)), slice(int(first) + 1, int(last))))
+    return found
+
+
+def _crossing(currents: np.ndarray, travelled: np.ndarray, fraction: float) -> float:
+    """The current [A] where the static travel (fractions, from 0 at rest) first reaches fraction, linear
+    between the held currents."""
+    above = np.flatnonzero(travelled >= fraction)
+    k = int(above[0]) if above.size else travelled.size - 1
+    if k == 0:
+        return float(currents[0])
+    share = np.clip((fraction - travelled[k - 1]) / max(travelled[k] - travelled[k - 1], 1e-12), 0.0, 1.0)
+    return float(currents[k - 1] + share * (currents[k] - currents[k - 1]))
+
+
+def noise_level(y: np.ndarray) -> float:
+    """The sensor's noise (standard deviation) estimated from the sample-to-sample changes of y: for white noise
+    their median magnitude is 0.954 of it; a smooth motion adds little."""
+    return float(np.median(np.abs(np.diff(y)))) / 0.954
+
+
+def _band(name: str, currents: np.ndarray, static: np.ndarray, least: float) -> WireBand:
+    """A wire's band from its static positions at rest (first) and at each held current [A] (then); it moves
+    the stage when it travels at least `least`."""
+    travel = float(static[-1] - static[0])
+    moves = least > 0.0 and abs(travel) >= least
+    held = tuple(float(value) for value in currents[1:])
+    if not moves:
+        return WireBand(name, False, travel, np.nan, np.nan, held, tuple(float(value) for value in static[1:]))
+    travelled = np.maximum.accumulate((static - static[0]) / travel)
+    return WireBand(name, True, travel, _crossing(currents, travelled, EDGE), _crossing(currents, travelled, 1 - EDGE),
+                    held, tuple(float(value) for value in static[1:]))
+
+
+def analyse_probe(t: np.ndarray, u: np.ndarray, y: np.ndarray) -> ProbeResult:
+    """What a recorded probe (time [s], current [A], output) found; InputError in one line when the record is not
+    a probe (its input far from probe_schedule's for its length and largest current) or neither wire moved the
+    stage."""
+    t, u = checked_record(t, u)
+    y = as_signal(y, "output")
+    if y.size != t.size:
+        raise InputError(f"time and output differ in length ({t.size} and {y.size} samples)")
+    t = t - t[0]
+    step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    duration_s = float(t[-1] + step)
+    if t.size < 8 * len(STAIRS) or _hold_s(duration_s) < 4 * step:
+        raise InputError(f"a probe record needs at least 4 samples per held current, got {t.size} samples in all")
+    limit = float(np.max(np.abs(u)))
+    if limit <= 0.0:
+        raise InputError("the probe record's current is zero throughout")
+    distance = float(np.median(np.abs(u - probe_signal(t, limit, duration_s))))
+    if distance > MATCH_TOLERANCE * limit:
+        raise InputError(f"not a probe record: its current is {distance:.2g} A (median) from the probe's schedule "
+                         f"for {duration_s:g} s at {limit:g} A (write one with gpi_tool excitation probe)")
+    segments = _segments(t, duration_s)
+    span, noise = float(np.ptp(y)), NOISE_MULTIPLE * noise_level(y)
+    moving = [part for wire, _, part in segments
+              if wire >= 0 and float(np.ptp(y[part])) >= max(MIN_HOLD_MOTION * span, noise)]
+    if not moving:
+        raise InputError(f"the probe did not move the stage: no held current up to {limit:g} A moved it over "
+                         f"{100 * MIN_HOLD_MOTION:g} % of the record's span (is the stage powered, the sensor read?)")
+    time_constant_s = float(np.median([fit_relaxation(t[part], y[part]) for part in moving]))
+    finals = [_exponential_fit(t[part] - t[part][0], y[part], time_constant_s)[1] for _, _, part in segments]
+    wires = []
+    for wire, name in enumerate(WIRES):
+        at_rest = float(y[0]) if wire == 0 else finals[len(STAIRS)]  # wire b starts after wire a's rest
+        chosen = [number for number, (owner, _, _) in enumerate(segments) if owner == wire]
+        currents = np.array([0.0] + [segments[number][1] * limit for number in chosen])
+        wires.append(_band(name, currents, np.array([at_rest] + [finals[number] for number in chosen]),
+                           max(MIN_TRAVEL_SHARE * span, noise)))
+    if not any(band.moves for band in wires):
+        raise InputError(f"the probe did not move the stage: neither wire moved it over {100 * MIN_TRAVEL_SHARE:g} % "
+                         f"of the record's span up to {limit:g} A (is the stage powered, the sensor read?)")
+    return ProbeResult(limit, time_constant_s, (wires[0], wires[1]))
