@@ -4,7 +4,9 @@ stage the model code did not make). Per variant: the paper's decaying sine (1000
 (900 s: gpi_tool excitation designed --probe); each record identified as `gpi_tool diagnose` does (every family,
 validated on the paper's validation record), then the chosen model run from rest on three validation shapes, each
 on its own settled stage: the paper's validation signal, held random levels (60 s each) and a sine sweep (period
-200 s down to 20 s). Prints one table and writes it to bench/results/experiment.md.
+200 s down to 20 s). First, what the probe finds on each variant beside the plant's own figures: one wire's
+m c / (h A), and the currents where 60 s holds from rest move the stage 5 % and 95 % of the way (wire a).
+Prints the tables and writes them to bench/results/experiment.md.
 
     .venv/bin/python bench/bench_experiment.py [--variants nominal,...] [--seeds 0,1,2,3,4] [--families ...]
 """
@@ -79,6 +81,35 @@ def identified_errors(record: tuple, validation: tuple, shapes: dict, families: 
     return described, errors
 
 
+def held_band(stage: physical.Stage, edge: float = 0.05) -> tuple[float, float]:
+    """Where 60 s holds of wire a's current (from rest, 0.25 A apart, each followed by 60 s at 0 A) move the stage
+    edge and 1 - edge of the way to where 5 A held moves it [A]."""
+    levels = np.arange(0.25, LIMIT_A + 1e-9, 0.25)
+    hold = int(60.0 / PERIOD_S)
+    current = np.concatenate([np.r_[np.full(hold, level), np.zeros(hold)] for level in levels])
+    y = physical.simulate(current, stage, 0)
+    moved = np.array([y[2 * hold * k + hold - 1] - y[2 * hold * k] for k in range(levels.size)])
+    travelled = np.maximum.accumulate(moved / moved[-1])
+    return (float(np.interp(edge, travelled, levels)), float(np.interp(1.0 - edge, travelled, levels)))
+
+
+def probe_rows(variants: list[str], noise_seed: int) -> None:
+    """What the probe finds beside the plant's own lag and band."""
+    print("| variant | m c / (h A) [s] | probe's time constant [s] | wire a: 60 s holds move it 5 %-95 % [A] | "
+          "probe's band, wire a; wire b [A] |")
+    print("|---|---|---|---|---|")
+    t = np.arange(0.0, PROBE_S, PERIOD_S)
+    current = probe_signal(t, LIMIT_A, PROBE_S)
+    for variant in variants:
+        stage = physical.VARIANTS[variant]
+        found = analyse_probe(t, current, physical.simulate(current, stage, noise_seed + 5))
+        lag = stage.density_kg_m3 * stage.specific_heat_j_kg_k * stage.wire_diameter_m / 4 / stage.convection_w_m2_k
+        low, high = held_band(stage)
+        bands = "; ".join(f"{band.start_a:.2f}-{band.end_a:.2f}" for band in found.wires)
+        print(f"| {variant} | {lag:.1f} | {found.time_constant_s:.1f} | {low:.2f}-{high:.2f} | {bands} |", flush=True)
+    print()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", default=",".join(physical.VARIANTS))
@@ -90,6 +121,7 @@ def main() -> None:
     families = tuple(args.families.split(","))
     seeds = [int(seed) for seed in args.seeds.split(",")]
     shape_names = list(physical.VALIDATION_SHAPES)
+    probe_rows(args.variants.split(","), args.noise_seed)
     print("| variant | identified on | seed | moving % | model | " + " | ".join(f"{name} RMS / max %" for name in
                                                                             shape_names) + " | worst RMS % | probe |")
     print("|---" * (7 + len(shape_names)) + "|")

@@ -73,7 +73,7 @@ def print_end_to_end(result: dict, settings: EndToEndSettings, out_dir: Path) ->
     print(f"   nodes launched before part 1, serving {seconds['start']:.1f} s later; ~/excite ({settings.excite_duration_s:g} s of the paper's "
           f"identification signal) and ~/refit took {seconds['excite_and_refit']:.1f} s")
     ident, valid = report["identification"], report["validation"]
-    print(f"   ~/refit: {report['model']['operators']} operators on {ident['samples']} samples in "
+    print(f"   ~/refit: {report['gpi_fit']['operators']} operators on {ident['samples']} samples in "
           f"{report['fit_seconds']:.1f} s; error rms {ident['rms_pct']:.2f} % max {ident['max_pct']:.2f} %; "
           f"held-out tail ({valid['samples']} samples) rms {valid['rms_pct']:.2f} % max {valid['max_pct']:.2f} %")
     print(f"   {describe_diagnosis(report)}")

@@ -1654,6 +1654,7 @@ def test_excite_designed_designs_from_the_probe_it_recorded_and_the_refit_report
     wait_until(lambda: not identification.exciting, 30.0, "the excitation to end")
     found = identification.probe
     assert found is not None and identification.design is not None
+    print(f"through the nodes, the probe found: {found.summary()}")
     assert 1.0 <= found.time_constant_s <= 30.0
     assert all(band.moves and 0.0 <= band.start_a < band.end_a <= 5.0 for band in found.wires)
     times, levels = identification.design

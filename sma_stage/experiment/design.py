@@ -1,7 +1,8 @@
 """The identification excitation designed from a probe: first-order reversal curves of each wire over the band
 the probe found (peaks spread over the band and a little beyond, reversals at many depths, half of them with an
-inner loop), holds sized to the measured time constant, ramps at rates spread over a decade so that the rate
-effect shows, and passes from one wire to the other either through a cooling rest or directly. Deterministic by
+inner loop), holds sized to the measured time constant, ramps at rates from steps to slow ramps so that the
+rate effect shows, runs of held levels reached by steps on either wire (as a positioning loop commands), and
+passes from one wire to the other either through a cooling rest or directly. Deterministic by
 seed; the peaks and the reversal depths are stratified, so that every draw covers the band."""
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ COOL_TAUS = (2.0, 3.5)  # a rest at zero current between wires
 RAMP_TAUS = (0.05, 5.0)  # a ramp over the band takes this many time constants (log-uniform): steps to slow ramps
 INNER_LOOP_SHARE = 0.5
 DIRECT_SHARE = 0.4  # of the passes to the other wire: directly, without a cooling rest
+STEP_RUN_SHARE = 0.35  # of the reversal curves: followed by a run of held levels reached by steps, either wire
+STEP_RUN_LEVELS = (2, 4)  # levels in a run (uniform, the upper bound excluded)
 MIN_STEP_S = 0.5
 
 
@@ -94,6 +97,11 @@ def design_schedule(probe: ProbeResult, duration_s: float, seed: int = 0) -> tup
         if rng.uniform() < INNER_LOOP_SHARE:
             inner = reversal + (peak - reversal) * rng.uniform(0.3, 0.8)
             go(sign * inner, ramp_s(inner - reversal, band), tau * rng.uniform(*INNER_HOLD_TAUS))
+        if rng.uniform() < STEP_RUN_SHARE:
+            for _ in range(rng.integers(*STEP_RUN_LEVELS)):
+                sign, band = wires[rng.integers(len(wires))]
+                level = rng.uniform(return_end_a(band, limit), _peak_range(band, limit)[1])
+                go(sign * level, MIN_STEP_S, tau * rng.uniform(*HOLD_TAUS))
         if len(wires) == 1 or rng.uniform() >= DIRECT_SHARE:
             go(0.0, ramp_s(levels[-1], band), tau * rng.uniform(*COOL_TAUS))
         turn += 1

@@ -105,8 +105,8 @@ def probe_signal(t: np.ndarray, max_current_a: float, duration_s: float) -> np.n
 
 def probe_duration_s(excitation_s: float) -> float:
     """The probe's default duration [s] for an excitation of excitation_s [s]: PROBE_SHARE of it, at least
-    MIN_PROBE_S."""
-    return max(PROBE_SHARE * excitation_s, MIN_PROBE_S)
+    MIN_PROBE_S but never more than half of it."""
+    return max(PROBE_SHARE * excitation_s, min(MIN_PROBE_S, 0.5 * excitation_s))
 
 
 def _exponential_fit(elapsed: np.ndarray, y: np.ndarray, time_constant_s: float) -> tuple[float, float]:
@@ -116,10 +116,12 @@ def _exponential_fit(elapsed: np.ndarray, y: np.ndarray, time_constant_s: float)
     return float(np.sum((basis @ coefficients - y) ** 2)), float(coefficients[0])
 
 
-def fit_relaxation(t: np.ndarray, y: np.ndarray) -> float:
-    """The time constant [s] of y(t) = c + a exp(-(t - t[0]) / tau) that fits best, over TIME_CONSTANTS_S."""
+def fit_relaxation(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """(time constant [s], RMS residual) of the y(t) = c + a exp(-(t - t[0]) / tau) that fits best, over
+    TIME_CONSTANTS_S."""
     costs = [_exponential_fit(t - t[0], y, tau)[0] for tau in TIME_CONSTANTS_S]
-    return float(TIME_CONSTANTS_S[int(np.argmin(costs))])
+    best = int(np.argmin(costs))
+    return float(TIME_CONSTANTS_S[best]), float(np.sqrt(costs[best] / y.size))
 
 
 def _segments(t: np.ndarray, duration_s: float) -> list[tuple[int, float, slice]]:
@@ -143,12 +145,6 @@ def _crossing(currents: np.ndarray, travelled: np.ndarray, fraction: float) -> f
         return float(currents[0])
     share = np.clip((fraction - travelled[k - 1]) / max(travelled[k] - travelled[k - 1], 1e-12), 0.0, 1.0)
     return float(currents[k - 1] + share * (currents[k] - currents[k - 1]))
-
-
-def noise_level(y: np.ndarray) -> float:
-    """The sensor's noise (standard deviation) estimated from the sample-to-sample changes of y: for white noise
-    their median magnitude is 0.954 of it; a smooth motion adds little."""
-    return float(np.median(np.abs(np.diff(y)))) / 0.954
 
 
 def _band(name: str, currents: np.ndarray, static: np.ndarray, least: float) -> WireBand:
@@ -185,13 +181,15 @@ def analyse_probe(t: np.ndarray, u: np.ndarray, y: np.ndarray) -> ProbeResult:
         raise InputError(f"not a probe record: its current is {distance:.2g} A (median) from the probe's schedule "
                          f"for {duration_s:g} s at {limit:g} A (write one with gpi_tool excitation probe)")
     segments = _segments(t, duration_s)
-    span, noise = float(np.ptp(y)), NOISE_MULTIPLE * noise_level(y)
-    moving = [part for wire, _, part in segments
+    relaxations = [fit_relaxation(t[part], y[part]) for _, _, part in segments]
+    span = float(np.ptp(y))
+    noise = NOISE_MULTIPLE * float(np.median([residual for _, residual in relaxations]))  # the sensor's, per sample
+    moving = [number for number, (wire, _, part) in enumerate(segments)
               if wire >= 0 and float(np.ptp(y[part])) >= max(MIN_HOLD_MOTION * span, noise)]
     if not moving:
         raise InputError(f"the probe did not move the stage: no held current up to {limit:g} A moved it over "
                          f"{100 * MIN_HOLD_MOTION:g} % of the record's span (is the stage powered, the sensor read?)")
-    time_constant_s = float(np.median([fit_relaxation(t[part], y[part]) for part in moving]))
+    time_constant_s = float(np.median([relaxations[number][0] for number in moving]))
     finals = [_exponential_fit(t[part] - t[part][0], y[part], time_constant_s)[1] for _, _, part in segments]
     wires = []
     for wire, name in enumerate(WIRES):

@@ -51,7 +51,7 @@ def refit_summary(report: dict) -> str:
         error = f"{named} added; held-out RMS {before:.3g} % -> {after:.3g} %"
     else:
         error = f"no diagnosis; held-out RMS {validation['rms_pct']:.3g} %"
-    parts = [f"refit ok: {report['model']['operators']} operators, {error}"]
+    parts = [f"refit ok: {report['gpi_fit']['operators']} operators, {error}"]
     families = report.get("families")
     if families:
         scores = ", ".join(f"{row['family']} {row['validation']['rms_pct']:.3g} %" if row["validation"] else
