@@ -48,7 +48,7 @@ def test_a_probe_that_moves_nothing_or_is_not_a_probe_is_refused_in_one_line():
     for u, y, message in ((current, still, "the probe did not move the stage"),
                           (np.sin(t), simulate(np.sin(t), VARIANTS["nominal"]), "not a probe record"),
                           (current, np.r_[np.nan, still[1:]], "non-finite"),
-                          (current[:20], still[:20], "at least 4 samples per held current")):
+                          (current[:60], still[:60], "not a probe record: no hold of 4 samples at")):
         with pytest.raises(InputError, match=message) as error:
             analyse_probe(t[: u.size], u, y)
         assert "\n" not in str(error.value)

@@ -1645,7 +1645,7 @@ def test_excite_designed_designs_from_the_probe_it_recorded_and_the_refit_report
     """Through the nodes on the simulated stage: the probe finds the lag and each wire's band, the rest of the
     excitation stays within the current limit and reaches the band, and the refit's report carries the probe."""
     stage_node(ros, rate_hz=100.0, time_scale=100.0, command_timeout=5.0)  # 1 s of stage time a cycle
-    identification = identification_node(ros, excite_signal="designed", excite_duration=600.0,
+    identification = identification_node(ros, excite_signal="designed", excite_duration=1000.0,
                                          excite_time_scale=100.0, excite_rate_hz=50.0, min_samples=60,
                                          max_held_out_rms_pct=100.0, push_timeout=0.1, operators=5)
     probe = ros.probe()
@@ -1658,7 +1658,7 @@ def test_excite_designed_designs_from_the_probe_it_recorded_and_the_refit_report
     assert 1.0 <= found.time_constant_s <= 30.0
     assert all(band.moves and 0.0 <= band.start_a < band.end_a <= 5.0 for band in found.wires)
     times, levels = identification.design
-    assert np.max(np.abs(levels)) <= 5.0 + 1e-12 and times[-1] == pytest.approx(540.0)
+    assert np.max(np.abs(levels)) <= 5.0 + 1e-12 and times[-1] == pytest.approx(900.0)
     answer = refit_answer(ros, probe)
     assert answer.success, answer.message
     assert published_report(ros)["probe"]["time_constant_s"] == pytest.approx(found.time_constant_s)

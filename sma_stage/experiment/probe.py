@@ -27,7 +27,8 @@ EDGE = 0.05  # of a wire's travel: where its band starts and ends
 MIN_TRAVEL_SHARE = 0.05  # of the probe's output span: a wire that moves the stage less does not move it
 MIN_HOLD_MOTION = 0.05  # of the wire's travel: a hold that moves the stage less says nothing of the lag
 NOISE_MULTIPLE = 10.0  # a motion smaller than this many times the sensor's noise is no motion
-MATCH_TOLERANCE = 0.10  # of the current limit: the recorded input's median distance from the probe's schedule
+MIN_HOLD_SAMPLES = 4
+LEVEL_TOLERANCE = 0.02  # of the current limit: a recorded current this close to a held one is that hold
 WIRES = ("a", "b")
 
 
@@ -124,15 +125,36 @@ def fit_relaxation(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return float(TIME_CONSTANTS_S[best]), float(np.sqrt(costs[best] / y.size))
 
 
-def _segments(t: np.ndarray, duration_s: float) -> list[tuple[int, float, slice]]:
-    """(wire, held current as a fraction of the limit, samples) of every hold and rest, in order; each slice
-    leaves out the first sample (the position before the step)."""
-    times, levels = probe_schedule(1.0, duration_s)
-    found = []
-    for start, end, level in zip(times[::2], times[1::2], levels[::2], strict=True):
-        first, last = np.searchsorted(t, [start, end])
-        wire = 0 if level > 0.0 else 1 if level < 0.0 else -1
-        found.append((wire, abs(float(level)), slice(int(first) + 1, int(last))))
+def _longest_run(mask: np.ndarray, after: int = 0) -> slice | None:
+    """The longest run of True in mask starting at or after index `after` (None: none)."""
+    padded = np.r_[False, mask[after:], False].astype(np.int8)
+    edges = np.flatnonzero(np.diff(padded))
+    if edges.size == 0:
+        return None
+    starts, ends = edges[::2], edges[1::2]
+    longest = int(np.argmax(ends - starts))
+    return slice(after + int(starts[longest]), after + int(ends[longest]))
+
+
+def _segments(u: np.ndarray, limit: float) -> list[tuple[int, float, slice]]:
+    """(wire, held current as a fraction of the limit, samples) of every hold, wire a's then wire b's, then the
+    rest between them (wire -1), found from the recorded current (the longest run at each held current, so that a
+    stage clock that ran slow or fast moves nothing); each slice leaves out the run's first sample (the position
+    before the step). InputError naming a held current the record does not hold for MIN_HOLD_SAMPLES samples."""
+    found, after = [], 0
+    for wire, sign in ((0, 1.0), (1, -1.0)):
+        for fraction in STAIRS:
+            run = _longest_run(np.abs(u - sign * fraction * limit) <= LEVEL_TOLERANCE * limit, after)
+            if run is None or run.stop - run.start < MIN_HOLD_SAMPLES:
+                raise InputError(f"not a probe record: no hold of {MIN_HOLD_SAMPLES} samples at "
+                                 f"{sign * fraction * limit:g} A "
+                                 "(write one with gpi_tool excitation probe)")
+            found.append((wire, fraction, slice(run.start + 1, run.stop)))
+            after = run.stop
+        if wire == 0:  # the rest at 0 A right after wire a's last hold
+            resting = np.abs(u[after:]) <= LEVEL_TOLERANCE * limit
+            length = resting.size if resting.all() else int(np.argmax(~resting))
+            found.append((-1, 0.0, slice(after + 1, after + length)))
     return found
 
 
@@ -162,42 +184,42 @@ def _band(name: str, currents: np.ndarray, static: np.ndarray, least: float) -> 
 
 def analyse_probe(t: np.ndarray, u: np.ndarray, y: np.ndarray) -> ProbeResult:
     """What a recorded probe (time [s], current [A], output) found; InputError in one line when the record is not
-    a probe (its input far from probe_schedule's for its length and largest current) or neither wire moved the
-    stage."""
+    a probe (no hold of MIN_HOLD_SAMPLES samples at one of its held currents, STAIRS of the record's largest current) or neither
+    wire moved the stage."""
     t, u = checked_record(t, u)
     y = as_signal(y, "output")
     if y.size != t.size:
         raise InputError(f"time and output differ in length ({t.size} and {y.size} samples)")
     t = t - t[0]
-    step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
-    duration_s = float(t[-1] + step)
-    if t.size < 8 * len(STAIRS) or _hold_s(duration_s) < 4 * step:
-        raise InputError(f"a probe record needs at least 4 samples per held current, got {t.size} samples in all")
     limit = float(np.max(np.abs(u)))
     if limit <= 0.0:
         raise InputError("the probe record's current is zero throughout")
-    distance = float(np.median(np.abs(u - probe_signal(t, limit, duration_s))))
-    if distance > MATCH_TOLERANCE * limit:
-        raise InputError(f"not a probe record: its current is {distance:.2g} A (median) from the probe's schedule "
-                         f"for {duration_s:g} s at {limit:g} A (write one with gpi_tool excitation probe)")
-    segments = _segments(t, duration_s)
-    relaxations = [fit_relaxation(t[part], y[part]) for _, _, part in segments]
+    segments = _segments(u, limit)
+    holds = [(wire, fraction, part) for wire, fraction, part in segments if wire >= 0]
+    relaxations = [fit_relaxation(t[part], y[part]) for _, _, part in holds]
     span = float(np.ptp(y))
     noise = NOISE_MULTIPLE * float(np.median([residual for _, residual in relaxations]))  # the sensor's, per sample
-    moving = [number for number, (wire, _, part) in enumerate(segments)
-              if wire >= 0 and float(np.ptp(y[part])) >= max(MIN_HOLD_MOTION * span, noise)]
+    moving = [number for number, (_, _, part) in enumerate(holds)
+              if float(np.ptp(y[part])) >= max(MIN_HOLD_MOTION * span, noise)]
     if not moving:
         raise InputError(f"the probe did not move the stage: no held current up to {limit:g} A moved it over "
                          f"{100 * MIN_HOLD_MOTION:g} % of the record's span (is the stage powered, the sensor read?)")
     time_constant_s = float(np.median([relaxations[number][0] for number in moving]))
-    finals = [_exponential_fit(t[part] - t[part][0], y[part], time_constant_s)[1] for _, _, part in segments]
+
+    def final(part: slice) -> float:
+        """Where the position was heading over these samples (the last one's value when there are too few)."""
+        if part.stop - part.start < 3:
+            return float(y[part.stop - 1])
+        return _exponential_fit(t[part] - t[part][0], y[part], time_constant_s)[1]
+
+    rest = next(part for wire, _, part in segments if wire < 0)
+    at_rest = (float(y[holds[0][2].start - 1]), final(rest))  # before wire a's first hold; where the rest went
     wires = []
     for wire, name in enumerate(WIRES):
-        at_rest = float(y[0]) if wire == 0 else finals[len(STAIRS)]  # wire b starts after wire a's rest
-        chosen = [number for number, (owner, _, _) in enumerate(segments) if owner == wire]
-        currents = np.array([0.0] + [segments[number][1] * limit for number in chosen])
-        wires.append(_band(name, currents, np.array([at_rest] + [finals[number] for number in chosen]),
-                           max(MIN_TRAVEL_SHARE * span, noise)))
+        chosen = [(fraction, part) for owner, fraction, part in holds if owner == wire]
+        currents = np.array([0.0] + [fraction * limit for fraction, _ in chosen])
+        static = np.array([at_rest[wire]] + [final(part) for _, part in chosen])
+        wires.append(_band(name, currents, static, max(MIN_TRAVEL_SHARE * span, noise)))
     if not any(band.moves for band in wires):
         raise InputError(f"the probe did not move the stage: neither wire moved it over {100 * MIN_TRAVEL_SHARE:g} % "
                          f"of the record's span up to {limit:g} A (is the stage powered, the sensor read?)")
