@@ -10,14 +10,19 @@ import numpy as np
 from sma_stage.commands.simulate import MAX_SAMPLES
 from sma_stage.errors import InputError
 from sma_stage.experiment.design import designed_signal
-from sma_stage.experiment.probe import ProbeResult, analyse_probe, probe_signal
+from sma_stage.experiment.probe import ProbeResult, analyse_probe, probe_duration_s, probe_signal
 from sma_stage.io.atomic import atomic_write_text
 from sma_stage.io.load import load_series
-from sma_stage.signals import designed_identification_signal, paper_identification_signal
+from sma_stage.signals import (
+    IDENTIFICATION_DURATION_S,
+    designed_identification_signal,
+    paper_identification_signal,
+)
 
 KINDS = ("paper", "designed", "probe")
-DEFAULT_DURATION_S = {"paper": 1000.0, "designed": 1000.0, "probe": 100.0}
-DESIGNED_AFTER_PROBE_S = 900.0  # designed --probe: the default duration, so that probe and design make 1000 s
+PROBE_S = probe_duration_s(IDENTIFICATION_DURATION_S)
+DEFAULT_DURATION_S = {"paper": IDENTIFICATION_DURATION_S, "designed": IDENTIFICATION_DURATION_S, "probe": PROBE_S}
+DESIGNED_AFTER_PROBE_S = IDENTIFICATION_DURATION_S - PROBE_S  # designed --probe: with the probe, 1000 s
 
 
 def excitation(kind: str, duration_s: float, step_s: float, max_current_a: float = 5.0, seed: int = 0,

@@ -56,14 +56,8 @@ class ProbeResult:
     wires: tuple[WireBand, WireBand]
 
     def as_dict(self) -> dict:
-        """The result as plain JSON-able values."""
-        def plain(value: object) -> object:
-            if isinstance(value, tuple):
-                return [plain(item) for item in value]
-            return None if isinstance(value, float) and not np.isfinite(value) else value
-
-        return {"max_current_a": self.max_current_a, "time_constant_s": plain(self.time_constant_s),
-                "wires": [{key: plain(value) for key, value in asdict(band).items()} for band in self.wires]}
+        """The result as a dict for a report (a wire that does not move has NaN edges: strict_json writes null)."""
+        return asdict(self)
 
     def summary(self) -> str:
         """One line for a log."""
