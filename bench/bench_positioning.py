@@ -15,8 +15,9 @@ continues the plant that ran the identification record, so that the model's carr
 
 Setpoints, each over 70 % of the stroke the identification record reached, centred, after 60 s at the shape's
 first value (not scored): sines of 20, 50, 100 and 250 s period (400 s; 500 s for 250 s), the paper's validation
-shape (1000 s), eight random levels held 60 s each (settled: the mean error over the last 20 s of each hold; the
-mean and the largest over the holds) and a slow ramp (300 s up, 300 s down). Columns: RMS and max error [% of the
+shape (1000 s), three draws of eight random levels held 60 s each (settled: the mean error over the last 20 s of
+each hold, the position at each instant against the setpoint of that instant; the mean and the largest over the
+holds) and a slow ramp (300 s up, 300 s down). Columns: RMS and max error [% of the
 stroke] over the scored part, and the current's change from one command to the next (99th percentile, % of the
 5 A limit), so that a law that chatters cannot win.
 """
@@ -51,7 +52,7 @@ RECORD_S = 1000.0
 MAX_CURRENT_A = 5.0
 STROKE_FRACTION = 0.7
 LEAD_IN_S = 60.0
-HOLD_S, SETTLED_S, HOLDS = 60.0, 20.0, 8
+HOLD_S, SETTLED_S, HOLDS, LEVEL_DRAWS = 60.0, 20.0, 8, 3
 NEW_VARIANTS = {
     "slow_wires": replace(physical.Stage(), wire_diameter_m=0.75e-3, convection_w_m2_k=100.0),
     "fast_wires": replace(physical.Stage(), wire_diameter_m=0.4e-3, convection_w_m2_k=250.0),
@@ -143,17 +144,20 @@ def identify(name: str, seed: int) -> Identified:
 
 def shapes(seed: int) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     """Setpoint shapes in [-1, 1] of time since the shape began [s], by name."""
-    levels = np.random.default_rng(seed + 7).uniform(-1.0, 1.0, HOLDS)
+    draws = [np.random.default_rng(seed + 7 + draw).uniform(-1.0, 1.0, HOLDS) for draw in range(LEVEL_DRAWS)]
+    held = {f"held levels {draw + 1}": (lambda s, levels=levels: levels[np.minimum((s // HOLD_S).astype(int), HOLDS - 1)])
+            for draw, levels in enumerate(draws)}
     sines = {f"sine {period:g} s": (lambda s, p=period: np.sin(2.0 * np.pi * s / p)) for period in (20, 50, 100, 250)}
     return {**sines,
             "paper's validation": lambda s: physical.paper_validation(s) / 5.0,
-            "held levels": lambda s: levels[np.minimum((s // HOLD_S).astype(int), HOLDS - 1)],
+            **held,
             "slow ramp": lambda s: 1.0 - 2.0 * np.abs(s / 300.0 - 1.0)}
 
 
 def duration_s(shape: str) -> float:
-    return {"sine 250 s": 500.0, "paper's validation": 1000.0, "held levels": HOLD_S * HOLDS, "slow ramp": 600.0}.get(
-        shape, 400.0)
+    if shape.startswith("held levels"):
+        return HOLD_S * HOLDS
+    return {"sine 250 s": 500.0, "paper's validation": 1000.0, "slow ramp": 600.0}.get(shape, 400.0)
 
 
 @dataclass(frozen=True)
@@ -187,11 +191,11 @@ def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.nd
     error = 100.0 * (positions - wanted[1:])[scored] / span
     change = 100.0 * np.abs(np.diff(currents[lead_in - 1:])) / MAX_CURRENT_A
     result = Tracked(float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error))), float(np.percentile(change, 99)))
-    if shape != "held levels":
+    if not shape.startswith("held levels"):
         return result
-    per_hold = int(HOLD_S / PERIOD_S)
-    settled = [abs(float(np.mean(error[(hold + 1) * per_hold - int(SETTLED_S / PERIOD_S):(hold + 1) * per_hold])))
-               for hold in range(HOLDS)]
+    per_hold, settled_n = int(HOLD_S / PERIOD_S), int(SETTLED_S / PERIOD_S)
+    ends = [(hold + 1) * per_hold - 1 for hold in range(HOLDS)]  # error[j] is the position against setpoint j + 1
+    settled = [abs(float(np.mean(error[end - settled_n:end]))) for end in ends]
     return replace(result, settled_mean_pct=float(np.mean(settled)), settled_max_pct=float(np.max(settled)))
 
 

@@ -12,7 +12,7 @@ from test_two_wire import example_model as example_two_wire
 
 from sma_stage.control import Compensator
 from sma_stage.control.compensator import imc_gains, slew_time_s
-from sma_stage.control.drives import dead_band_a, reach_span_m
+from sma_stage.control.drives import dead_band_a, drive_for, reach_span_m
 from sma_stage.control.thermal import ThermalState
 from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
@@ -123,6 +123,30 @@ def test_pi_removes_a_constant_offset_of_the_plant():
     assert position == pytest.approx(1e-4, abs=1e-9)
     held = [core.command(1e-4, plant.step(core.command_a) + offset_m, dt_s) for _ in range(20)]
     assert np.ptp(held) < 1e-9, "the command settles"
+
+
+@pytest.mark.parametrize("step_m", [3e-5, -3e-5, 8e-5])
+def test_the_integral_waits_while_the_model_expects_the_stage_still_on_its_way(step_m):
+    """A step on a plant that is the model itself (a two-wire model, heating lags of 3.5-4 s): while the stage is
+    short of half the step, the whole error is one the model expects to close, and the integral keeps what the
+    step's first command gave it (integrating that error, as before, wound it up by ki e dt every step); the
+    stage then settles on the level."""
+    model, dt_s = example_two_wire(), 0.2
+    plant = drive_for(model, LIMIT_A, "exact")
+    core = Compensator(model, LIMIT_A, **imc_gains(model, dt_s))
+    start_m = plant.predicted_m
+    level_m = start_m + step_m
+    core.command(start_m, start_m, 0.0)
+    integrals, positions = [], []
+    for _ in range(int(120.0 / dt_s)):
+        plant.advance(core.command_a, dt_s)
+        positions.append(plant.predicted_m)
+        core.command(level_m, positions[-1], dt_s)
+        integrals.append(core.integral_m)
+    short = [integral for integral, position in zip(integrals, positions, strict=True)
+             if (position - start_m) / step_m < 0.5]
+    assert len(short) > 10 and np.ptp(short) == 0.0
+    assert positions[-1] == pytest.approx(level_m, abs=1e-7)
 
 
 @pytest.mark.parametrize("period_s", [0.1, 0.4])

@@ -4,7 +4,10 @@ PI loop around it.
 Per call, dt seconds after the previous one, with e = setpoint - measured position [m] when a
 measurement is given (feedback):
 
-    integral += ki e dt, except while the command saturates in the direction of e (anti-windup)
+    integral += ki e dt, except while the command saturates in the direction of e (anti-windup), and
+                while a held setpoint's error is one the model still expects to close: the setpoint holds and
+                is not moving (see below), and the inverse's model is further from the inverse's target than
+                the stage from the setpoint (conditional integration)
     target    = setpoint + kp e + integral                      (target = setpoint without feedback)
     target    = a play of half-width deadband_m on it: the target reverses only once it has come back by
                 more than 2 deadband_m (feedback only; measurement noise no longer reverses it)
@@ -343,9 +346,9 @@ class Compensator:
         self._held_s = self._held_s + dt if held else 0.0
         self.target_m = setpoint
         self._looped = measured is not None
-        if measured is not None:
-            self.target_m = self._pi_target(setpoint, measured, dt)
         moving = self._setpoint.moves(setpoint, dt)
+        if measured is not None:
+            self.target_m = self._pi_target(setpoint, measured, dt, held and not moving)
         limit = self._lead_limit
         if measured is None:
             limit = self._feedforward_lead_limit if moving else self._feedforward_step_lead_limit
@@ -454,9 +457,17 @@ class Compensator:
         self._commanded = False
         self._release_inverse()
 
-    def _pi_target(self, setpoint: float, measured: float, dt: float) -> float:
+    def _in_transit_m(self) -> float:
+        """How far [m] the inverse's model still is from the inverse's target: the part of a step the model
+        expects the stage to cover yet (0 before any target, and for a target beyond the model's reach)."""
+        if self._inverse_target is None or self.drive.out_of_reach:
+            return 0.0
+        return abs(self._inverse_target - self.drive.predicted_m)
+
+    def _pi_target(self, setpoint: float, measured: float, dt: float, holding: bool) -> float:
+        """The loop's target [m]; holding: the setpoint holds and has not been moving (a step, then a hold)."""
         error = setpoint - measured
-        if self.saturated * error <= 0.0:
+        if self.saturated * error <= 0.0 and not (holding and self._in_transit_m() > abs(error)):
             low, high = self.drive.target_bounds  # beyond them the integral changes no command: a bound
             reach = high - low
             self.integral_m = min(reach, max(-reach, self.integral_m + self._ki * error * dt))
