@@ -725,6 +725,30 @@ def test_compensator_refuses_a_missing_model_file_at_start(ros, tmp_path):
     assert "not found" in str(excinfo.value) and "\n" not in str(excinfo.value)
 
 
+def test_compensator_refuses_an_unknown_control_trigger_at_start(ros):
+    with pytest.raises(InputError) as excinfo:
+        CompensatorNode(context=ros.context, parameter_overrides=[Parameter("control_trigger", value="often")])
+    assert "control_trigger must be one of timer, joint_states" in str(excinfo.value)
+    assert "\n" not in str(excinfo.value)
+
+
+def test_compensator_steps_once_for_each_position_with_the_joint_states_trigger(ros):
+    """control_trigger joint_states: a setpoint alone commands nothing; each joint_states gives one command, for
+    the position it carries (the loop in step with the stage)."""
+    compensator = compensator_node(ros, control_trigger="joint_states", feedback=True, tuning="manual", kp=0.0,
+                                  ki=0.0, rate_hz=100.0)
+    probe = CompensatorProbe(ros, compensator)
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    wait_until(lambda: compensator.setpoint_m == 1e-4, 5.0, "the setpoint")
+    time.sleep(0.3)
+    assert not probe.commands.messages, "a command before any position"
+    for count in (1, 2, 3):
+        probe.measure(0.0)
+        wait_until(lambda count=count: len(probe.commands.messages) >= count, 5.0, f"command {count}")
+    time.sleep(0.3)
+    assert len(probe.commands.messages) == 3, "one command for each position and none between them"
+
+
 def test_compensator_pi_integrates_the_error_with_anti_windup(ros):
     compensator = compensator_node(ros, feedback=True, tuning="manual", kp=0.0, ki=20.0, rate_hz=100.0,
                                   max_current=2.0)

@@ -117,7 +117,11 @@ COMPENSATOR_PARAMS = [
           "the wall clock without use_sim_time (not applied with use_sim_time); the model, the lead, the PI loop "
           "and the rate limit count stage seconds", 0.001, 10000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
+    Param("control_trigger", "timer", "when the loop computes a command: 'timer' (rate_hz, and at once on a new "
+          "setpoint) or 'joint_states' (once for each position the stage publishes, at its stamp: the loop in step "
+          "with the stage, as a simulated stage many times faster than the wall clock needs)", read_only=True),
 ]
+TRIGGERS = ("timer", "joint_states")
 CompensatorSettings = settings_type("CompensatorSettings", COMPENSATOR_PARAMS)
 
 
@@ -156,6 +160,9 @@ class CompensatorNode(Node):
             # stage_and_compensator) is not applied
             self.time_scale = 1.0 if self.get_parameter("use_sim_time").value else self.settings.time_scale
             self.period_estimate_s = self.tuned_period_s = self.time_scale / self.settings.rate_hz
+            if self.settings.control_trigger not in TRIGGERS:
+                raise InputError(f"control_trigger must be one of {', '.join(TRIGGERS)}, "
+                                 f"got {self.settings.control_trigger!r}")
             model, self.model_source = model_from(self.settings)
             self.core = self.build_core(model, self.settings)
         except InputError:
@@ -290,7 +297,8 @@ class CompensatorNode(Node):
         self.core = core
 
     def on_setpoint(self, message: Float64) -> None:
-        """A new position setpoint [m]: answer at once with a command."""
+        """A new position setpoint [m]: answer at once with a command (with control_trigger timer; else the next
+        joint_states does)."""
         value = float(message.data)
         if not finite(value):
             self.warnings.warn("setpoint", f"refused a non-finite setpoint ({value})")
@@ -300,7 +308,8 @@ class CompensatorNode(Node):
                 self.warnings.warn("disabled", "setpoint ignored: enabled is false (another node owns current_cmd)")
                 return
             self.setpoint_m = value
-            self.publish_command(self.compute_command(self.elapsed_s()))
+            if self.settings.control_trigger == "timer":
+                self.publish_command(self.compute_command(self.elapsed_s()))
 
     def on_current_applied(self, message: Float64) -> None:
         """The current [A] the stage applied over its last step: while this node does not command the stage
@@ -316,11 +325,14 @@ class CompensatorNode(Node):
             self._last_step_ns = now_ns
 
     def on_joint_states(self, message: JointState) -> None:
-        """Keep the latest measured position [m]."""
+        """Keep the latest measured position [m]; with control_trigger joint_states, step the loop at its stamp."""
         index = joint_index(message, self.settings.joint_name)
-        if index is not None and math.isfinite(message.position[index]):
-            self.measured_m = float(message.position[index])
-            self._measured_at = self.steady.now()
+        if index is None or not math.isfinite(message.position[index]):
+            return
+        self.measured_m = float(message.position[index])
+        self._measured_at = self.steady.now()
+        if self.settings.control_trigger == "joint_states":
+            self.step_control(message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec)
 
     def control_clock(self) -> Clock:
         """The clock the control period runs on: the node clock with use_sim_time (1/rate_hz simulated s,
@@ -328,17 +340,21 @@ class CompensatorNode(Node):
         return self.get_clock() if self.get_parameter("use_sim_time").value else self.steady
 
     def on_tick(self) -> None:
-        """Fixed-rate step: the PI, lead and drift update (feedback, or a lag or drift in the model) or a repeat
-        of the command."""
+        """Fixed-rate step (control_trigger timer): the PI, lead and drift update (feedback, or a lag or drift in the
+        model) or a repeat of the command."""
+        if self.settings.control_trigger == "timer":
+            self.step_control(self.get_clock().now().nanoseconds)
+
+    def step_control(self, now_ns: int) -> None:
+        """One step of the loop at now_ns [ns of the node clock, or a joint_states stamp]."""
         with self._lock:
-            now_ns = self.get_clock().now().nanoseconds
             previous_ns, self._last_tick_ns = self._last_tick_ns, now_ns
             if previous_ns is not None and now_ns > previous_ns:
                 self.follow_control_period((now_ns - previous_ns) * 1e-9 * self.time_scale)
             if self.setpoint_m is None or not self.settings.enabled:
                 return
             if self.settings.feedback or self.core.drive.evolves:
-                self.publish_command(self.compute_command(self.elapsed_s()))
+                self.publish_command(self.compute_command(self.elapsed_s(now_ns)))
             else:
                 self.publish_command(self.command_a)
 
@@ -357,10 +373,10 @@ class CompensatorNode(Node):
                                f"PI kp {self.core.kp:.3g} ki {self.core.ki:.3g}/s (imc)",
                                throttle_duration_sec=PERIOD_LOG_INTERVAL_S)
 
-    def elapsed_s(self) -> float:
-        """Stage seconds since the previous command computed, 0 for the first (simulated time with
-        use_sim_time, else node-clock seconds times time_scale)."""
-        now_ns = self.get_clock().now().nanoseconds
+    def elapsed_s(self, now_ns: int | None = None) -> float:
+        """Stage seconds from the previous command computed to now_ns [ns; default the node clock's now], 0 for the
+        first (simulated time with use_sim_time, else node-clock seconds times time_scale)."""
+        now_ns = self.get_clock().now().nanoseconds if now_ns is None else now_ns
         previous_ns, self._last_step_ns = self._last_step_ns, now_ns
         if previous_ns is None:
             return 0.0
