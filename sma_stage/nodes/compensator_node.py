@@ -189,7 +189,8 @@ class CompensatorNode(Node):
         self._reported_clipped = 0
         self.create_timer(DIAGNOSTICS_PERIOD_S, quiet_on_shutdown(self, self.publish_diagnostics), clock=self.steady)
         self.period_s = 1.0 / self.settings.rate_hz
-        self.create_timer(self.period_s, quiet_on_shutdown(self, self.on_tick), clock=self.control_clock())
+        if self.settings.control_trigger == "timer":
+            self.create_timer(self.period_s, quiet_on_shutdown(self, self.on_tick), clock=self.control_clock())
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
 
     def loop_settings(self, model: AnyModel, values: CompensatorSettings) -> dict[str, float]:
@@ -332,7 +333,7 @@ class CompensatorNode(Node):
         self.measured_m = float(message.position[index])
         self._measured_at = self.steady.now()
         if self.settings.control_trigger == "joint_states":
-            self.step_control(message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec)
+            self.step_control(Time.from_msg(message.header.stamp).nanoseconds)
 
     def control_clock(self) -> Clock:
         """The clock the control period runs on: the node clock with use_sim_time (1/rate_hz simulated s,
@@ -340,13 +341,12 @@ class CompensatorNode(Node):
         return self.get_clock() if self.get_parameter("use_sim_time").value else self.steady
 
     def on_tick(self) -> None:
-        """Fixed-rate step (control_trigger timer): the PI, lead and drift update (feedback, or a lag or drift in the
-        model) or a repeat of the command."""
-        if self.settings.control_trigger == "timer":
-            self.step_control(self.get_clock().now().nanoseconds)
+        """Fixed-rate step (control_trigger timer)."""
+        self.step_control(self.get_clock().now().nanoseconds)
 
     def step_control(self, now_ns: int) -> None:
-        """One step of the loop at now_ns [ns of the node clock, or a joint_states stamp]."""
+        """One step of the loop at now_ns [ns of the node clock, or a joint_states stamp]: the PI, lead and drift
+        update (feedback, or a lag or drift in the model) or a repeat of the command."""
         with self._lock:
             previous_ns, self._last_tick_ns = self._last_tick_ns, now_ns
             if previous_ns is not None and now_ns > previous_ns:

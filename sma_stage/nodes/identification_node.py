@@ -56,6 +56,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rcl_interfaces.srv import SetParametersAtomically
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, String
 from std_srvs.srv import Trigger
@@ -287,7 +288,7 @@ class IdentificationNode(ExcitationRoom, RefitRoom, ModelsRoom, Node):
         if index is None:
             return
         receive_ns = self.now_ns()
-        stamp_ns = message.header.stamp.sec * 10**9 + message.header.stamp.nanosec
+        stamp_ns = Time.from_msg(message.header.stamp).nanoseconds
         position = float(message.position[index])
         velocity = float(message.velocity[index]) if index < len(message.velocity) else 0.0
         effort = float(message.effort[index]) if index < len(message.effort) else math.nan
