@@ -1648,7 +1648,7 @@ def test_excite_designed_probes_first_and_stops_at_zero_when_the_probe_recorded_
     from sma_stage.experiment.probe import probe_signal
 
     node = identification_node(ros, excite_signal="designed", excite_amplitude_start=3.0, excite_duration=1000.0,
-                               excite_time_scale=100.0, excite_rate_hz=50.0, pause_compensator=False)
+                               excite_time_scale=50.0, excite_rate_hz=50.0, pause_compensator=False)
     commands: list[float] = []
     probe = ros.probe("designed_probe")
     probe.create_subscription(Float64, "current_cmd", lambda message: commands.append(message.data), 100)
