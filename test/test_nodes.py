@@ -367,6 +367,33 @@ def test_stage_with_sim_time_publishes_a_fast_clock(ros):
     assert simulated > 5.0 * wall, f"{simulated:.2f} s simulated in {wall:.2f} s of wall time"
 
 
+def test_a_stage_in_lockstep_steps_once_per_command_which_acts_over_that_step(ros):
+    """lockstep_timeout: while commands come, the simulated stage takes one step per command, the command over that
+    step (the applied current it then publishes), and a wait with no command runs out after lockstep_timeout."""
+    stage = stage_node(ros, rate_hz=100.0, time_scale=10.0, use_sim_time=True, lockstep_timeout=0.5,
+                       command_timeout=5.0)
+    probe = ros.probe()
+    send = command_publisher(probe)
+    wait_until(lambda: stage.count_publishers("current_cmd") >= 1, 5.0, "the command publisher")
+    send(0.5)  # before it, the stage runs at its pace: nobody commands it
+    wait_until(lambda: stage.applied_a == 0.5, 5.0, "the first command applied")
+    time.sleep(0.1)
+    for value in (1.0, 2.0, 3.0):
+        steps = stage.published_steps
+        send(value)
+        wait_until(lambda value=value: stage.applied_a == value, 5.0, f"{value} A applied")
+        assert stage.published_steps == steps + 1, "the command acts over the first step after it"
+        time.sleep(0.2)
+        assert stage.published_steps == steps + 1, "no step before the next command"
+    wait_until(lambda: stage.lockstep_timeouts >= 1, 2.0, "the wait to run out")
+    assert stage.applied_a == 3.0, "the last command held over a step it did not answer"
+
+
+def test_lockstep_is_refused_off_simulated_time(ros):
+    with pytest.raises(InputError, match=r"^parameter 'lockstep_timeout': lockstep needs the simulator"):
+        StageNode(context=ros.context, parameter_overrides=[Parameter("lockstep_timeout", value=0.5)])
+
+
 def test_a_node_renamed_by_process_arguments_is_one_node_with_its_services():
     """`ros2 launch` (a Node with name and namespace) and `ros2 run -r __node:=... -r __ns:=...` rename every node
     the process makes: the identification node's hidden service helper used to take the same name, so the graph
@@ -747,6 +774,33 @@ def test_compensator_steps_once_for_each_position_with_the_joint_states_trigger(
         wait_until(lambda count=count: len(probe.commands.messages) >= count, 5.0, f"command {count}")
     time.sleep(0.3)
     assert len(probe.commands.messages) == 3, "one command for each position and none between them"
+
+
+def test_a_stamped_setpoint_acts_from_its_stamp_however_early_it_came(ros):
+    """setpoint_stamped: setpoints sent ahead wait for their time; each control step (here one per joint_states)
+    takes the latest one due at its stamp, and one for another joint is refused."""
+    compensator = compensator_node(ros, control_trigger="joint_states")
+    probe = CompensatorProbe(ros, compensator)
+    stamped = probe.node.create_publisher(JointState, "setpoint_stamped", COMMAND_QOS)
+
+    def message(stamp_s: float, position_m: float, joint: str = "stage_x") -> JointState:
+        sent = JointState(name=[joint], position=[position_m])
+        sent.header.stamp = RosTime(seconds=stamp_s).to_msg()
+        return sent
+
+    wait_until(lambda: compensator.count_publishers("setpoint_stamped") >= 1, 5.0, "discovery")
+    for stamp_s, position_m in ((10.0, 1e-4), (20.0, 2e-4), (20.5, 3e-4)):
+        stamped.publish(message(stamp_s, position_m))
+    stamped.publish(message(15.0, 9e-4, joint="other"))
+    wait_until(lambda: len(compensator.scheduled) == 3, 5.0, "three setpoints scheduled")
+    for stamp_s, expected_m in ((5.0, None), (10.0, 1e-4), (15.0, 1e-4), (21.0, 3e-4)):
+        state = message(stamp_s, 0.0)
+        probe.state_pub.publish(state)
+        wait_until(lambda stamp_s=stamp_s: compensator._last_tick_ns == RosTime(seconds=stamp_s).nanoseconds, 5.0,
+                   f"the step at {stamp_s} s")
+        assert compensator.setpoint_m == expected_m, (stamp_s, compensator.setpoint_m)
+    assert compensator.scheduled == [], "the setpoints due are taken and the one passed over dropped"
+    assert len(probe.commands.messages) == 3, "a command at each step with a setpoint due"
 
 
 def test_compensator_pi_integrates_the_error_with_anti_windup(ros):

@@ -1,6 +1,8 @@
 """The `compensator` node: turns `setpoint` [m] into `current_cmd` [A] through the inverse of the
 identified model (sma_stage.control.Compensator), optionally with a PI loop on the measured position
-(`joint_states`) around it.
+(`joint_states`) around it. `setpoint_stamped` (sensor_msgs/JointState, the position of joint_name) takes
+setpoints that act from their header stamp on: a generator may send them ahead, and each acts at the first
+control step at or after its time however the transport delays it.
 
 The model in force is the last one given: `model_file` (a model file from `gpi_tool fit/diagnose` or
 `~/refit`; read at start, when the parameter changes and on `~/reload`) or `model` (the whole model as
@@ -32,6 +34,7 @@ command is held), or when targets were beyond the model's reach.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 
@@ -140,6 +143,26 @@ def model_from(values: CompensatorSettings, changed: str | None = None) -> tuple
     return load_any_model_file(path), path
 
 
+MAX_SCHEDULED = 10_000  # stamped setpoints kept ahead of their time (the earliest dropped beyond)
+
+
+def loop_settings(model: AnyModel, values: CompensatorSettings, period_s: float) -> dict[str, float]:
+    """The control core's loop settings from the node's parameter values, the model and the control period [s of
+    stage time] (InputError when one is unusable): kp and ki (derived or manual), lead limits, deadband, rate
+    limit."""
+    if values.tuning not in TUNINGS:
+        raise InputError(f"tuning must be one of {', '.join(TUNINGS)}, got {values.tuning!r}")
+    if values.tuning == "imc":
+        gains = imc_gains(model, period_s, values.lead_limit, slew_time_s(values.max_current, values.max_current_rate))
+    else:
+        gains = checked_gains(values.kp, values.ki)
+    return {**gains, "lead_limit": values.lead_limit,
+            "feedforward_lead_limit": values.feedforward_lead_limit,
+            "feedforward_step_lead_limit": values.feedforward_step_lead_limit,
+            "deadband_m": values.deadband,
+            "max_rate_a_per_s": values.max_current_rate}
+
+
 def unexpected(error: Exception) -> str:
     """One line for an error no check foresaw while taking a new model (the model in force stays)."""
     return f"model refused after an unexpected {type(error).__name__}: {' '.join(str(error).split())[:200]}"
@@ -170,6 +193,7 @@ class CompensatorNode(Node):
             raise
         self.steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.setpoint_m: float | None = None
+        self.scheduled: list[tuple[int, float]] = []  # stamped setpoints not yet due: (stamp [ns], position [m])
         self.measured_m: float | None = None
         self._measured_at: Time | None = None
         self.clipped_count = 0
@@ -180,6 +204,7 @@ class CompensatorNode(Node):
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.command_pub = self.create_publisher(Float64, "current_cmd", COMMAND_QOS)
         self.create_subscription(Float64, "setpoint", self.on_setpoint, COMMAND_QOS)
+        self.create_subscription(JointState, "setpoint_stamped", self.on_setpoint_stamped, COMMAND_QOS)
         self.create_subscription(JointState, "joint_states", self.on_joint_states, STATE_SUBSCRIBE_QOS)
         self.create_subscription(Float64, "current_applied", self.on_current_applied, COMMAND_QOS)
         self.create_service(Trigger, "~/reload", self.on_reload)
@@ -193,26 +218,10 @@ class CompensatorNode(Node):
             self.create_timer(self.period_s, quiet_on_shutdown(self, self.on_tick), clock=self.control_clock())
         self.get_logger().info(f"compensator ready: {self.describe_model()}")
 
-    def loop_settings(self, model: AnyModel, values: CompensatorSettings) -> dict[str, float]:
-        """The control core's loop settings from the node's parameter values and the model (InputError when
-        one is unusable): kp and ki (derived or manual), lead limits, deadband, rate limit."""
-        if values.tuning not in TUNINGS:
-            raise InputError(f"tuning must be one of {', '.join(TUNINGS)}, got {values.tuning!r}")
-        if values.tuning == "imc":
-            gains = imc_gains(model, self.tuned_period_s, values.lead_limit,
-                              slew_time_s(values.max_current, values.max_current_rate))
-        else:
-            gains = checked_gains(values.kp, values.ki)
-        return {**gains, "lead_limit": values.lead_limit,
-                "feedforward_lead_limit": values.feedforward_lead_limit,
-                "feedforward_step_lead_limit": values.feedforward_step_lead_limit,
-                "deadband_m": values.deadband,
-                "max_rate_a_per_s": values.max_current_rate}
-
     def build_core(self, model: AnyModel, values: CompensatorSettings) -> Compensator:
         """A control core for the model with the node's settings (InputError when either is unusable)."""
         return Compensator(model, values.max_current, values.inverse_method,
-                           **self.loop_settings(model, values))
+                           **loop_settings(model, values, self.tuned_period_s))
 
     @property
     def model(self) -> AnyModel:
@@ -246,7 +255,7 @@ class CompensatorNode(Node):
                 model, source = model_from(candidate, changed)
                 core = self.build_core(model, candidate)
             else:
-                loop = self.loop_settings(self.model, candidate)
+                loop = loop_settings(self.model, candidate, self.tuned_period_s)
         except InputError as error:
             return SetParametersResult(successful=False, reason=str(error))
         except Exception as error:  # noqa: BLE001 -- a bug met by a new model is a refusal, not a dead node
@@ -254,6 +263,7 @@ class CompensatorNode(Node):
         with self._lock:
             if candidate.enabled != self.settings.enabled:
                 self.setpoint_m = None
+                self.scheduled.clear()
                 self.core.reset()
             self.settings = candidate
             if rebuild:
@@ -312,6 +322,29 @@ class CompensatorNode(Node):
             if self.settings.control_trigger == "timer":
                 self.publish_command(self.compute_command(self.elapsed_s()))
 
+    def on_setpoint_stamped(self, message: JointState) -> None:
+        """A position setpoint [m] of joint_name that acts from its header stamp on (node clock): the first step of
+        the loop at or after the stamp takes it, however early or late the message came."""
+        index = joint_index(message, self.settings.joint_name)
+        if index is None or not math.isfinite(message.position[index]):
+            self.warnings.warn("setpoint", f"refused a stamped setpoint without a finite position of "
+                               f"{self.settings.joint_name}")
+            return
+        with self._lock:
+            if not self.settings.enabled:
+                self.warnings.warn("disabled", "setpoint ignored: enabled is false (another node owns current_cmd)")
+                return
+            bisect.insort(self.scheduled, (Time.from_msg(message.header.stamp).nanoseconds,
+                                           float(message.position[index])))
+            del self.scheduled[:-MAX_SCHEDULED]
+
+    def take_due_setpoint(self, now_ns: int) -> None:
+        """The latest stamped setpoint due at now_ns [ns] becomes the setpoint; those before it are dropped."""
+        due = bisect.bisect_right(self.scheduled, (now_ns, math.inf))
+        if due:
+            self.setpoint_m = self.scheduled[due - 1][1]
+            del self.scheduled[:due]
+
     def on_current_applied(self, message: Float64) -> None:
         """The current [A] the stage applied over its last step: while this node does not command the stage
         (no setpoint, or enabled false), the model's states follow it (Compensator.follow_applied)."""
@@ -351,6 +384,7 @@ class CompensatorNode(Node):
             previous_ns, self._last_tick_ns = self._last_tick_ns, now_ns
             if previous_ns is not None and now_ns > previous_ns:
                 self.follow_control_period((now_ns - previous_ns) * 1e-9 * self.time_scale)
+            self.take_due_setpoint(now_ns)
             if self.setpoint_m is None or not self.settings.enabled:
                 return
             if self.settings.feedback or self.core.drive.evolves:

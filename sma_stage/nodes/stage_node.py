@@ -29,6 +29,13 @@ it with the remapping `/clock:=clock` (launch/stage.launch.py sets it). Otherwis
 simulator by the steady-clock time since the previous tick times time_scale (at most MAX_CATCH_UP_STEPS
 periods). On instruments the stage's time is the host's steady clock times time_scale (1 for a real stage; a
 loopback test rig may run faster).
+
+Lockstep (`lockstep_timeout` > 0, the simulator on use_sim_time): after publishing a state the stage does not
+step until a current_cmd has come (at most lockstep_timeout wall seconds, and only while commands are coming:
+a stage nobody commands runs at its pace), and the command that came acts over that step. With a controller
+that answers each state (the compensator's `control_trigger: joint_states`) every command then acts over the
+step that starts at the position it answers, as in a loop run in one process, however loaded the machine: the
+simulated time slows down instead.
 """
 
 from __future__ import annotations
@@ -108,6 +115,8 @@ class StageNode(LifecycleNode):
         try:
             values = StageSettings.of(declare_all(self, STAGE_PARAMS))
             self.autostart = check_choice("autostart", values.autostart, AUTOSTART)
+            self.lockstep_timeout_s = check_lockstep(values.lockstep_timeout, values.backend,
+                                                     bool(self.get_parameter("use_sim_time").value))
             self.hardware = make_hardware(values)
         except InputError:
             self.destroy_node()
@@ -136,6 +145,8 @@ class StageNode(LifecycleNode):
         self.faults = 0
         self.warnings = ThrottledWarnings(self)
         self.reading: Reading | None = None
+        self.answered = True  # a command came since the last state published (lockstep)
+        self.lockstep_timeouts = 0  # steps taken with no command after the state before (lockstep_timeout)
         self.timing = CycleTiming(1.0 / self.rate_hz)
         self._last_tick: Time | None = None
         self._reconnect_s = FIRST_RECONNECT_S
@@ -306,6 +317,7 @@ class StageNode(LifecycleNode):
             self.warnings.warn("clamped", f"current command {value:g} A clamped to {clamped:g} A (max_current)")
         self.command_a = clamped
         self.last_command = self.steady.now()
+        self.answered = True
 
     def command_age_s(self) -> float:
         """Seconds [steady clock] since the last accepted command (inf when none came)."""
@@ -340,16 +352,19 @@ class StageNode(LifecycleNode):
     def on_tick(self) -> None:
         """One cycle, in ros2_control's order: read the stage (the position at the end of the last period and
         the current applied over it), publish joint_states and current_applied (and /clock with
-        use_sim_time), then write the current for the next period. A hardware fault switches the output off.
+        use_sim_time), then write the current for the next period (in lockstep the command that came is written
+first, so that it acts over this step). A hardware fault switches the output off.
         Unconfigured: reconnect when due."""
         if self.lifecycle not in ("active", "inactive"):
             self._reconnect_when_due()
             return
-        if self.frozen:
+        if self.frozen or self.awaiting_command():
             return
         start_ns = self.steady.now().nanoseconds
         self.timing.started(start_ns)
         try:
+            if self.lockstep_timeout_s:  # the command answering the last state acts over this step
+                self.hardware.write(wire_commands(self.current_to_apply()))
             self.reading = self.hardware.read(self.step_length_s())
             self.publish_reading()
             current_a = self.current_to_apply()
@@ -363,6 +378,17 @@ class StageNode(LifecycleNode):
             self.on_fault(str(error))
             return
         self.timing.ended((self.steady.now().nanoseconds - start_ns) * 1e-9)
+
+    def awaiting_command(self) -> bool:
+        """Lockstep: True while no command has come since the last state published, commands are coming, and the
+        wait has lasted less than lockstep_timeout (a wait that ran out is counted in lockstep_timeouts)."""
+        if not self.lockstep_timeout_s or self.answered or self.lifecycle != "active" or self.stopped \
+                or self.command_age_s() > self.command_timeout_s:
+            return False
+        if (self.steady.now() - self._published_at).nanoseconds * 1e-9 < self.lockstep_timeout_s:
+            return True
+        self.lockstep_timeouts += 1
+        return False
 
     def publish_reading(self) -> None:
         """Publish the last reading: /clock (with use_sim_time), current_applied, joint_states (the position and,
@@ -378,6 +404,8 @@ class StageNode(LifecycleNode):
         message.velocity = [self.reading.states["stage/velocity"]]
         message.effort = [float(self.applied_a)]  # the heating current [A] applied over the period, + wire a
         self.applied_pub.publish(Float64(data=float(self.applied_a)))
+        self.answered = False
+        self._published_at = self.steady.now()
         self.joint_pub.publish(message)
         self.published_steps += 1
 
@@ -472,6 +500,7 @@ class StageNode(LifecycleNode):
             "faults": self.faults,
             "last_fault": self.last_fault,
             "published_steps": self.published_steps,
+            "lockstep_timeouts": self.lockstep_timeouts,
             **self.timing.values(),
         }
         hardware_id = "; ".join(self.identity.values()) or f"sma_stage {self.backend}"
@@ -485,6 +514,14 @@ class StageNode(LifecycleNode):
         self._reported_counts = (self.clamped_count, self.rejected_count)
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(array)
+
+
+def check_lockstep(timeout_s: float, backend: str, use_sim_time: bool) -> float:
+    """lockstep_timeout [s], refused (InputError) unless the stage is the simulator on use_sim_time."""
+    if timeout_s and (backend != "sim" or not use_sim_time):
+        raise InputError("parameter 'lockstep_timeout': lockstep needs the simulator (backend sim) on use_sim_time; "
+                         "set it to 0 here")
+    return timeout_s
 
 
 def main(args: list[str] | None = None) -> None:

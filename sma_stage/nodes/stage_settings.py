@@ -41,6 +41,10 @@ STAGE_PARAMS = [
     Param("seed", 0, "random seed of the simulated sensor noise", 0, 2**31 - 1, read_only=True),
     Param("time_scale", 1.0, "stage seconds per wall second (simulator; 1 on a real stage)", 0.001, 10000.0,
           read_only=True),
+    Param("lockstep_timeout", 0.0, "simulator on use_sim_time: after publishing a state, wait up to this long "
+          "[s, steady clock] for a current_cmd before the next step, while commands are coming (a controller "
+          "answering each state: the compensator's control_trigger joint_states); 0: off", 0.0, 60.0,
+          read_only=True),
     *effect_params(),
 ]
 StageSettings = settings_type("StageSettings", STAGE_PARAMS)
