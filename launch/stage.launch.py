@@ -1,7 +1,8 @@
 """One SMA stage: the stage (simulator or SCPI instruments), the compensator and the identification node.
 
     ros2 launch sma_stage stage.launch.py [namespace:=stage2] [backend:=sim|visa] [hardware_file:=FILE]
-        [params_file:=FILE] [use_sim_time:=true] [time_scale:=20.0] [record_bag:=DIR] [bag_storage:=mcap]
+        [params_file:=FILE] [use_sim_time:=true] [time_scale:=20.0] [lockstep:=true] [record_bag:=DIR]
+        [bag_storage:=mcap]
 
 Each node reads its installed config/<node>.yaml, then params_file (if given; sections `/**/stage:`,
 `/**/compensator:`, `/**/identification:` as in the installed files), then the arguments. The stage starts in
@@ -18,6 +19,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+LOCKSTEP_TIMEOUT_S = 0.5  # [wall s] the stage's wait for the command answering its last position (lockstep:=true)
 ARGUMENTS = {
     "namespace": ("", "namespace of the stage's three nodes and topics (empty: the root namespace)"),
     "backend": ("sim", "sim: the embedded physics simulator; visa: SCPI instruments (hardware_file)"),
@@ -27,6 +29,9 @@ ARGUMENTS = {
     "use_sim_time": ("false", "true: the simulated stage publishes the clock and every node runs on it"),
     "time_scale": ("1.0", "simulated seconds per second (the simulator; with use_sim_time the clock runs this "
                           "fast)"),
+    "lockstep": ("false", "true (the simulator on use_sim_time): the stage steps once the compensator answered its "
+                          "last position (lockstep_timeout 0.5 s), the compensator answers each position "
+                          "(control_trigger joint_states): the loop of one process, however fast the clock runs"),
     "record_bag": ("", "rosbag2 directory the identification node records current_applied and joint_states "
                        "into (empty: none)"),
     "bag_storage": ("mcap", "storage of record_bag: mcap (Foxglove and PlotJuggler open it) or sqlite3"),
@@ -44,7 +49,11 @@ def nodes(context, *_args, **_kwargs) -> list[Node]:
     def files(name: str) -> list[str]:
         return [str(config / f"{name}.yaml")] + ([value["params_file"]] if value["params_file"] else [])
 
-    stage = {"backend": value["backend"], "time_scale": time_scale, "use_sim_time": sim_time}
+    lockstep = value["lockstep"].lower() in ("true", "1")
+    stage = {"backend": value["backend"], "time_scale": time_scale, "use_sim_time": sim_time,
+             **({"lockstep_timeout": LOCKSTEP_TIMEOUT_S} if lockstep else {})}
+    compensator = {"use_sim_time": sim_time, "time_scale": time_scale,
+                   **({"control_trigger": "joint_states"} if lockstep else {})}
     if value["hardware_file"]:
         stage["hardware_file"] = value["hardware_file"]
     identification = {"use_sim_time": sim_time, "excite_time_scale": 1.0 if sim_time else time_scale}
@@ -54,7 +63,7 @@ def nodes(context, *_args, **_kwargs) -> list[Node]:
         Node(package="sma_stage", executable="stage_node", name="stage", namespace=value["namespace"],
              parameters=[*files("stage"), stage], remappings=remappings, output="screen"),
         Node(package="sma_stage", executable="compensator_node", name="compensator", namespace=value["namespace"],
-             parameters=[*files("compensator"), {"use_sim_time": sim_time, "time_scale": time_scale}],
+             parameters=[*files("compensator"), compensator],
              remappings=remappings, output="screen"),
         Node(package="sma_stage", executable="identification_node", name="identification",
              namespace=value["namespace"], parameters=[*files("identification"), identification],

@@ -121,7 +121,7 @@ def test_an_installed_package_finds_its_installed_config(colcon_install: Path) -
 
 LAUNCH_ARGUMENTS = {
     "stage.launch.py": ["namespace", "backend", "hardware_file", "params_file", "use_sim_time", "time_scale",
-                        "record_bag", "bag_storage"],
+                        "lockstep", "record_bag", "bag_storage"],
     "stages.launch.py": ["count", "params_file", "use_sim_time", "time_scale"],
 }
 
