@@ -12,6 +12,7 @@ from synthetic import DEFAULT_EFFECTS, TRUE_OPERATORS, TRUE_PARAMETERS, make_cas
 
 from sma_stage.errors import InputError
 from sma_stage.identify import workers as workers_module
+from sma_stage.identify.chain import Validation
 from sma_stage.identify.diagnosis import diagnose
 from sma_stage.identify.effects import EFFECT_NAMES
 from sma_stage.identify.effects.delay import delayed_input
@@ -70,6 +71,26 @@ def test_diagnose_adds_a_second_effect_in_a_later_round():
     assert np.array_equal(result.chain.model.predict_from(t, u, start), result.validation_predicted_after)
     block = result.to_dict()
     assert block["effects"] == result.effects and [r["added"] for r in block["rounds"]][:2] == result.effects
+
+
+def test_candidates_are_judged_on_the_validation_record_they_predict_worst():
+    """others: each candidate's validation errors are those of the record it predicts worst (a record of a stage
+    with a delay instead of a lag, run from rest, beside the held-out one), and it is judged on them."""
+    case, other = make_case("thermal_lag", seed=SEED), make_case("delay", seed=SEED + 1)
+    ident, valid, second = case.identification, case.validation, other.validation
+    result = diagnose((ident.t, ident.u, ident.y), (valid.t, valid.u, valid.y), max_rounds=1, operators=5,
+                      others=((second.t, second.u, second.y),))
+    validation = Validation(valid.t, valid.u, valid.y)
+    worse_elsewhere = []
+    for candidate in result.candidates:
+        model, start = candidate.model.model, candidate.model.start
+        held_out = validation.errors(validation.predict(model, start).predicted).rms_pct
+        from_rest = error_metrics(second.y, model.without_state().predict(second.t, second.u)).rms_pct
+        assert candidate.validation.rms_pct == pytest.approx(max(held_out, from_rest), rel=1e-12)
+        worse_elsewhere.append(from_rest > held_out)
+    assert all(worse_elsewhere), "the record of the other stage is the worst for every candidate"
+    rate = next(candidate for candidate in result.candidates if candidate.effect == "rate")
+    assert not rate.accepted and f"{rate.validation.rms_pct:.3g} % is not below" in rate.reason
 
 
 def test_candidates_fitted_in_worker_processes_give_the_same_diagnosis():

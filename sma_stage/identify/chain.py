@@ -125,6 +125,7 @@ class Validation:
     u: np.ndarray
     y: np.ndarray
     scored_from: int = 0
+    others: tuple[Record, ...] = ()  # further validation records (t, u, y), each run from rest
 
     def predict(self, model: IdentifiedModel, identification_start: str) -> StartFit:
         """The model's output over the record, and the start it runs from."""
@@ -135,6 +136,13 @@ class Validation:
     def errors(self, predicted: np.ndarray) -> ErrorMetrics:
         """RMS and max error of a prediction over the scored samples [% of their span]."""
         return error_metrics(self.y[self.scored_from:], predicted[self.scored_from:])
+
+    def worst_errors(self, model: IdentifiedModel, identification_start: str) -> ErrorMetrics:
+        """The model's errors on the record it predicts worst (largest RMS % of the record's span): this one, or
+        one of `others`, each run from rest (as the families are scored on them)."""
+        errors = [self.errors(self.predict(model, identification_start).predicted)]
+        errors += [error_metrics(y, model.without_state().predict(t, u)) for t, u, y in self.others]
+        return max(errors, key=lambda metrics: metrics.rms_pct)
 
     def tests(self, predicted: np.ndarray) -> ResidualTests:
         """The residual tests of a prediction over the scored samples."""

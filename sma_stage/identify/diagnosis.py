@@ -16,7 +16,7 @@ or output).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -199,7 +199,7 @@ def _candidate(chain: Chain, fit: EffectFit, ident: Record, valid: Validation, b
     extended = chain.then(fit)
     if len(chain.stages) > 1:
         extended = refine(extended, ident, progress=progress)
-    validation = valid.errors(valid.predict(extended.model, extended.start).predicted)
+    validation = valid.worst_errors(extended.model, extended.start)
     delta_bic = extended.bic - chain.bic
     accepted, reason = judge(delta_bic, validation, before, margin)
     if accepted:
@@ -348,7 +348,8 @@ def recount_last(chain: Chain, ident: Record, progress: Progress = None) -> Chai
 
 def diagnose(ident: object, valid: object, base: FitResult | None = None, operators: int | None = None,
              progress: Progress = None, output_unit: str = "m", max_rounds: int = len(EFFECT_NAMES),
-             scored_from: int = 0, workers: int = 1, pool: Workers | None = None) -> Diagnosis:
+             scored_from: int = 0, workers: int = 1, pool: Workers | None = None,
+             others: Sequence[object] = ()) -> Diagnosis:
     """Fit (unless base is given) on ident, test the validation residual, fit and judge every candidate
     effect, add the one that earns its parameters, and search again on top of it, up to max_rounds
     rounds; "none" when the first round adds nothing.
@@ -357,26 +358,32 @@ def diagnose(ident: object, valid: object, base: FitResult | None = None, operat
     given, the count is then chosen again for the RECOUNTED best accepted candidates (an effect the
     plain GPI lacks also skews the count chosen for it). Later rounds keep the count; after them every
     added effect is fitted again on top of the others (`refine`) and the count chosen once more.
+    others: further validation records (t, u, y; each run from rest): a candidate is then judged by its errors on
+    the record it predicts worst, the held-out one or one of these, so that an effect is not chosen for one shape.
     workers: processes that fit a round's candidates at once (Workers; the result is the same for any count).
     pool: a caller's Workers to use instead (its `workers` then; it stays open). BLAS runs on one thread
     meanwhile (one_blas_thread).
     """
     with one_blas_thread():
         if pool is not None:
-            return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, pool)
+            return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, pool,
+                             others)
         with Workers(workers) as own:
-            return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, own)
+            return _diagnose(ident, valid, base, operators, progress, output_unit, max_rounds, scored_from, own,
+                             others)
 
 
 def _diagnose(ident: object, valid: object, base: FitResult | None, operators: int | None, progress: Progress,
-              output_unit: str, max_rounds: int, scored_from: int, pool: Workers) -> Diagnosis:
+              output_unit: str, max_rounds: int, scored_from: int, pool: Workers, others: Sequence[object] = ()
+              ) -> Diagnosis:
     started = time.perf_counter()
     ident_record = as_record(ident, "identification")
     valid_record = as_record(valid, "validation")
     if not 0 <= scored_from <= valid_record[0].size - 3:
         raise InputError(f"scored_from must leave at least 3 validation samples, got {scored_from}")
     pool.start()
-    validation = Validation(*valid_record, scored_from)
+    validation = Validation(*valid_record, scored_from,
+                            tuple(as_record(record, "validation") for record in others))
     t_i, u_i, y_i = ident_record
     if base is None:
         report(progress, "fitting the plain GPI on the identification data")
@@ -389,8 +396,9 @@ def _diagnose(ident: object, valid: object, base: FitResult | None, operators: i
     failed = [name for name, check in tests_before.checks.items() if not check.passed]
     report(progress, f"plain GPI: validation RMS {before.rms_pct:.3g} %, residual tests "
                       + (f"failed: {', '.join(failed)}" if failed else "all passed"))
-    chain, rounds, begun = _search_rounds(chain, ident_record, validation, before, tests_before, operators is None,
-                                          max_rounds, progress, pool)
+    judged_before = validation.worst_errors(chain.model, chain.start) if validation.others else before
+    chain, rounds, begun = _search_rounds(chain, ident_record, validation, judged_before, tests_before,
+                                          operators is None, max_rounds, progress, pool)
     if operators is None and len(chain.effects) > 1:
         chain = recount_last(chain, ident_record, progress)
     counts: dict[str, object] = {}
@@ -452,7 +460,7 @@ def _search_rounds(chain: Chain, ident: Record, validation: Validation, before: 
         report(progress, f"added {found.winner.effect}: validation RMS {current.rms_pct:.3g} %")
         if recount and chain.composable:
             chain, _ = count_by_held_out(chain, ident, validation, progress, cold=False, pool=pool)
-            current = validation.errors(validation.predict(chain.model, chain.start).predicted)
+            current = validation.worst_errors(chain.model, chain.start)
     return chain, rounds, begun
 
 

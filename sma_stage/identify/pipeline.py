@@ -79,7 +79,8 @@ def identify_recording(record: Series, validation: Series | None = None, holdout
     more_validation: further validation records (each run from an idle stage; beside `validation` or the held-out
     tail): every family is scored on each of them too, from rest, and chosen on the record it predicts worst, so
     that a choice cannot suit one shape of signal alone; the report's "validation_records" gives the deployed
-    model's errors on every record, the first validation first. The diagnosis traces the residual of the first.
+    model's errors on every record, the first validation first. The diagnosis traces the residual of the first and
+    judges each candidate effect on the record it predicts worst.
 
     max_fit_samples (None: FIT_SAMPLES; 0: never): a longer record is fitted, diagnosed and compared on a copy
     thinned by whole blocks to at most that many samples (Series.thinned; a validation record with the same
@@ -121,7 +122,7 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
         try:
             found = diagnose(ident, valid, base=fit, operators=operators, max_rounds=diagnose_rounds,
                              scored_from=scored_from, output_unit=fit.parameters.output_unit, progress=progress,
-                             pool=pool)
+                             pool=pool, others=tuple((series.t, series.input, series.output) for series in more))
         except Exception as error:  # noqa: BLE001 -- the fit stands whatever the diagnosis meets
             warnings.append(f"diagnosis failed, the plain GPI fit is kept: {type(error).__name__}: "
                             f"{' '.join(str(error).split())}")

@@ -62,7 +62,7 @@ def markdown_summary(report: dict, title: str) -> str:
         lines += [f"| {record['source']} | {record['samples']} | {record['rms_pct']:.3f} | {record['max_pct']:.3f} |"
                   for record in report["validation_records"]]
     if "diagnosis" in report:
-        lines += diagnosis_markdown(report["diagnosis"])
+        lines += diagnosis_markdown(report["diagnosis"], len(report.get("validation_records", ())) > 1)
     if report.get("families"):
         lines += families_markdown(report["families"])
     if report.get("compensation"):
@@ -88,8 +88,9 @@ def families_markdown(families: list[dict]) -> list[str]:
     return lines
 
 
-def diagnosis_markdown(diagnosis: dict) -> list[str]:
-    """The diagnosis part of the summary: the effects added, the evidence, each round's candidates."""
+def diagnosis_markdown(diagnosis: dict, several: bool = False) -> list[str]:
+    """The diagnosis part of the summary: the effects added, the evidence, each round's candidates (several:
+    judged on the validation record each predicts worst)."""
     before, after = diagnosis["before"]["validation"], diagnosis["after"]["validation"]
     added = " + ".join(diagnosis.get("effects") or [diagnosis["effect"]])
     parameters = ", ".join(f"{key} = {value:.4g}" for key, value in diagnosis["parameters"].items())
@@ -101,7 +102,8 @@ def diagnosis_markdown(diagnosis: dict) -> list[str]:
     rounds = diagnosis.get("rounds") or [{"added": diagnosis["effect"], "candidates": diagnosis.get("candidates", [])}]
     for number, found in enumerate(rounds, start=1):
         lines += ["", f"Round {number}: added **{found['added']}**.", "",
-                  "| candidate | parameters | validation RMS % | delta BIC | kept | why |", "|---|---|---|---|---|---|"]
+                  f"| candidate | parameters | {'worst ' if several else ''}validation RMS % | delta BIC | kept | why |",
+                  "|---|---|---|---|---|---|"]
         for candidate in found["candidates"]:
             if not candidate.get("fitted", True):
                 lines.append(f"| {candidate['effect']} | | | | no | {candidate['reason']} |")
