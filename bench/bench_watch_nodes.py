@@ -297,6 +297,11 @@ def before(flags: list[float], start_s: float, load_n: float) -> int:
     return sum(start_s <= flag < stop for flag in flags)
 
 
+def ratio(nodes: float, process: float) -> float:
+    """nodes / process, NaN when the process figure is 0 or NaN (a watch that never calibrated its bias test)."""
+    return nodes / process if process > 0.0 else math.nan
+
+
 def rms_um(a: np.ndarray, b: np.ndarray) -> float:
     return 1e6 * float(np.sqrt(np.mean(np.square(a - b))))
 
@@ -360,7 +365,7 @@ def main() -> int:
         reference_process = np.array([run.setpoint(t) for t in tracked_process[:, 0]])
         in_force = getattr(any_model_from_yaml_text(run.model_yaml), "FAMILY", "GPI")
         line = (f"| {','.join(families)}: {in_force} | {scale:g} | {kind} | {load_n:g} N, until {until_s:.0f} s | {1e6 * scale_nodes:.2f} / "
-                f"{1e6 * scale_record:.2f} / {1e6 * scale_process:.2f} ({scale_nodes / scale_process:.2f}) | "
+                f"{1e6 * scale_record:.2f} / {1e6 * scale_process:.2f} ({ratio(scale_nodes, scale_process):.2f}) | "
                 f"{delay(flags_nodes, load_n)} / {delay(flags_record, load_n)} / {delay(flags_process, load_n)} | "
                 f"{before(flags_nodes, run.pushed_s, load_n)} / {before(flags_process, run.pushed_s, load_n)} | "
                 f"{rms_um(tracked[:, 1], reference):.1f} / {rms_um(tracked_process[:, 1], reference_process):.1f} | "
