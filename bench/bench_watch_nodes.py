@@ -5,7 +5,8 @@ it. Prints one table and writes it to bench/results/watch_nodes.md.
     .venv/bin/python bench/bench_watch_nodes.py [--time-scales 20,50] [--setpoints sine,levels] [--families gpi]
                                                 [--load-step-n 2] [--runs 1] [--hours 0]
 
-Each run starts stage_node (simulator on simulated time, `lockstep_timeout` so that it steps once per command),
+Each run starts stage_node (simulator on simulated time, `lockstep_timeout` so that it steps once per command;
+frozen by `~/freeze_time` while the refit runs, so that the refit's wall time is not simulated time),
 compensator_node (`control_trigger: joint_states`, the PI loop) and identification_node (the watch's defaults,
 on_drift report) as processes; excites 500 s, refits (families), then tracks a setpoint (a sine of 200 s period,
 or random levels held 60 s, over +-30 % of the excitation's range) with a load step at LOAD_STEP_S. The bench
@@ -56,6 +57,8 @@ SINE_PERIOD_S = 200.0
 HOLD_S = 60.0
 FRACTION = 0.3  # of the excitation's range, each side of its middle
 LOCKSTEP_TIMEOUT_S = 0.5  # [wall s]
+AHEAD_STEPS = 20  # setpoints are sent this many steps ahead: with 2, a client starved beside a test suite fell
+# behind, held levels stepped late and the two loops' positions came 47 um RMS apart
 WATCH_RECORD_S = 900.0  # the identification node's watch_record default: the history a new model's watch starts from
 CHUNK = 10  # samples per call of the in-process watch
 FIRST_DOMAIN = 150
@@ -63,8 +66,9 @@ FIRST_DOMAIN = 150
 
 class Session:
     """The bench's node: records joint_states, the watch's /diagnostics and the model in force; while a profile is
-    set, answers each position with the setpoint two steps ahead, stamped with its time (`setpoint_stamped`: the
-    compensator takes it at that time, so that no setpoint reaches it early or late)."""
+    set, answers each position with the setpoint AHEAD_STEPS steps ahead, stamped with its time (`setpoint_stamped`:
+    the compensator takes it at that time, so that no setpoint reaches it early, nor late unless this node falls
+    AHEAD_STEPS behind the stage)."""
 
     def __init__(self, node) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
@@ -80,6 +84,7 @@ class Session:
         self.watch: list[tuple[float, dict[str, str]]] = []
         self.models: list[tuple[float, str]] = []  # (stamp of the last state then [s], model YAML)
         self.profile = None
+        self.lockstep_timeouts = "?"  # the stage's count on /diagnostics
         self.setpoint_pub = node.create_publisher(JointState, "setpoint_stamped", COMMAND_QOS)
         node.create_subscription(JointState, "joint_states", self.on_state,
                                  QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
@@ -92,7 +97,7 @@ class Session:
             self.states.append((stamp_s, float(message.position[0]), float(message.effort[0])))
             profile = self.profile
         if profile is not None:
-            self.publish_setpoint(stamp_s + 2.0 * STEP_S)
+            self.publish_setpoint(stamp_s + AHEAD_STEPS * STEP_S)
 
     def publish_setpoint(self, time_s: float) -> None:
         """The profile's setpoint [m] for time_s [s], stamped with it."""
@@ -105,6 +110,9 @@ class Session:
     def on_diagnostics(self, message) -> None:
         stamp_s = message.header.stamp.sec + 1e-9 * message.header.stamp.nanosec
         for status in message.status:
+            if status.name.endswith("sim stage"):
+                values = {item.key: item.value for item in status.values}
+                self.lockstep_timeouts = values.get("lockstep_timeouts", "?")
             if status.name.endswith("model watch"):
                 with self._lock:
                     self.watch.append((stamp_s, {item.key: item.value for item in status.values}))
@@ -187,27 +195,31 @@ def run_nodes(domain: int, time_scale: float, kind: str, families: list[str], lo
             wait_for(lambda: session.now_s() > EXCITE_S + 20.0, 20.0 * EXCITE_S / time_scale + 60.0,
                      "the excitation", nodes.check_running)
             models_before = len(session.models)
+            frozen, message = client.set_bool("stage/freeze_time", True)  # the refit's wall time is not simulated time
+            if not frozen:
+                raise RuntimeError(f"stage/freeze_time: {message}")
             retried(client, "identification/refit", "excitation is running", nodes.check_running, timeout_s=600.0)
             wait_for(lambda: len(session.models) > models_before, 60.0, "the refitted model", nodes.check_running)
+            client.set_bool("stage/freeze_time", False)
             pushed_s, model_yaml = session.models[-1]
             positions = np.array([row[1] for row in session.states])
             tracking_s = session.now_s() + STEP_S
             setpoint = make_setpoint(kind, positions.min(), positions.max(), tracking_s)
             session.profile = setpoint
-            for ahead in (0.0, STEP_S):
-                session.publish_setpoint(tracking_s + ahead)
+            for ahead in range(AHEAD_STEPS):
+                session.publish_setpoint(tracking_s + ahead * STEP_S)
             wait_for(lambda: session.now_s() >= until_s, 20.0 * (until_s - tracking_s) / time_scale + 120.0,
                      f"{until_s:.0f} s of simulated time", nodes.check_running)
             session.profile = None
             with session._lock:
-                states, watch = np.array(session.states), list(session.watch)
+                states, watch, timeouts = np.array(session.states), list(session.watch), session.lockstep_timeouts
         nodes.stop_all()
     stage_log = (out_dir / "stage_node.log").read_text() if (out_dir / "stage_node.log").exists() else ""
     commanded = states[(states[:, 0] > tracking_s - STEP_S) & (states[:, 2] != 0.0), 0]
     tracking_s = float(commanded[0]) - STEP_S if len(commanded) else tracking_s  # the state the first command answered
     notes = [] if tracking_s + settings.calibration_s < LOAD_STEP_S else \
         [f"tracking from {tracking_s:.0f} s: the watch was still calibrating at the load step"]
-    return NodesRun(states, watch, model_yaml, pushed_s, tracking_s, setpoint, time.monotonic() - started,
+    return NodesRun(states, watch, model_yaml, pushed_s, tracking_s, setpoint, time.monotonic() - started, timeouts,
                     notes=notes + ([line for line in stage_log.splitlines() if "Traceback" in line][:1]))
 
 
@@ -340,10 +352,10 @@ def main() -> int:
         plan.append((family_sets[0], max(scales), "sine", 0.0, LOAD_STEP_S - settings.calibration_s + 3600.0 * args.hours))
     header = ("| families: model in force | time scale | setpoint | load step | bias_held_out_m um: nodes / record / process (ratio nodes:process) "
               "| flagged s after the step: nodes / record / process | flags before it: nodes / process "
-              "| tracking RMS um: nodes / process | nodes - process RMS um | replay max um | wall s |")
+              "| tracking RMS um: nodes / process | nodes - process RMS um | replay max um | lockstep timeouts | wall s |")
     print(f"refit after {EXCITE_S:g} s; sine period {settings.sine_period_s:g} s; watch defaults but "
           f"{settings.calibration_windows} calibration windows; load step at {LOAD_STEP_S:g} s")
-    print(header, "|" + "---|" * 10, sep="\n", flush=True)
+    print(header, "|" + "---|" * 11, sep="\n", flush=True)
     for index, (families, scale, kind, load_n, until_s) in enumerate(plan):
         with tempfile.TemporaryDirectory() as folder:
             try:
@@ -370,7 +382,7 @@ def main() -> int:
                 f"{before(flags_nodes, run.pushed_s, load_n)} / {before(flags_process, run.pushed_s, load_n)} | "
                 f"{rms_um(tracked[:, 1], reference):.1f} / {rms_um(tracked_process[:, 1], reference_process):.1f} | "
                 f"{loops_apart_um(tracked, tracked_process):.3f} | "
-                f"{1e6 * replay_m:.3f} | {run.wall_s:.0f} |" + (f" {'; '.join(run.notes)}" if run.notes else ""))
+                f"{1e6 * replay_m:.3f} | {run.lockstep_timeouts} | {run.wall_s:.0f} |" + (f" {'; '.join(run.notes)}" if run.notes else ""))
         print(line, flush=True)
     return 0
 

@@ -989,9 +989,12 @@ def test_identification_refit_on_simulated_excitation_pushes_to_the_compensator(
     assert len(recorded) == report["samples"]["identification"] + report["samples"]["validation"], "buffer frozen"
     assert 450.0 < np.ptp(recorded.t) < 600.0, "the recording in stage seconds (the 500 s excitation), as the model"
     identification.close_bag()
-    from_bag = read_bag(bag, input_topic="current_applied")
+    from_bag = read_bag(bag)  # the current stamped with each position (joint_states' effort), as recorded
     assert len(from_bag) > len(recorded), "the bag records before and after the excitation too"
     assert np.ptp(from_bag.input) >= np.ptp(recorded.input) > 5.0
+    # current_applied is in the bag too; held at each position by its arrival, a loaded machine may pair a peak
+    # with the position after it (9.27 A of span against 9.30 A recorded, once beside a node benchmark)
+    assert np.ptp(read_bag(bag, input_topic="current_applied").input) > 5.0
     print(json.dumps({key: report[key] for key in ("identification", "validation", "samples", "fit_seconds")}))
 
 
