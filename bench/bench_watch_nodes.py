@@ -137,6 +137,7 @@ class NodesRun:
     pushed_s: float  # the last state's stamp when the refitted model was seen in force [s]
     tracking_s: float  # the stamp of the position the first command answered [s]
     setpoint: object
+    until_s: float  # the last time tracked [s]
     wall_s: float
     lockstep_timeouts: str = "?"
     notes: list[str] = field(default_factory=list)
@@ -171,9 +172,10 @@ def make_setpoint(kind: str, low: float, high: float, start_s: float):
     return lambda t: float(levels[int(max(t - start_s, 0.0) // HOLD_S)])
 
 
-def run_nodes(domain: int, time_scale: float, kind: str, families: list[str], load_n: float, until_s: float,
+def run_nodes(domain: int, time_scale: float, kind: str, families: list[str], load_n: float, watched_s: float | None,
               out_dir: Path) -> NodesRun:
-    """Excite, refit and track through the three nodes until until_s of simulated time."""
+    """Excite, refit and track through the three nodes: until AFTER_STEP_S after the load step, or (watched_s)
+    until the watch has judged watched_s [s] after its calibration."""
     started = time.monotonic()
     with NodeProcesses(out_dir, domain) as nodes:
         nodes.start("compensator_node", {"rate_hz": 1.0 / STEP_S, "use_sim_time": True,
@@ -192,7 +194,8 @@ def run_nodes(domain: int, time_scale: float, kind: str, families: list[str], lo
                                        "load_change_time_s": LOAD_STEP_S}, [CONFIG_DIR / "stage.yaml"])
             client.wait_for_services(["stage/stop"], 60.0, nodes.check_running)
             retried(client, "identification/excite", "no /clock", nodes.check_running)
-            wait_for(lambda: session.now_s() > EXCITE_S + 20.0, 20.0 * EXCITE_S / time_scale + 60.0,
+            excited_s = session.now_s()
+            wait_for(lambda: session.now_s() > excited_s + EXCITE_S + 10.0, 20.0 * EXCITE_S / time_scale + 60.0,
                      "the excitation", nodes.check_running)
             models_before = len(session.models)
             frozen, message = client.set_bool("stage/freeze_time", True)  # the refit's wall time is not simulated time
@@ -206,6 +209,8 @@ def run_nodes(domain: int, time_scale: float, kind: str, families: list[str], lo
             tracking_s = session.now_s() + STEP_S
             setpoint = make_setpoint(kind, positions.min(), positions.max(), tracking_s)
             session.profile = setpoint
+            until_s = LOAD_STEP_S + AFTER_STEP_S if watched_s is None else \
+                tracking_s + settings.calibration_s + watched_s
             for ahead in range(AHEAD_STEPS):
                 session.publish_setpoint(tracking_s + ahead * STEP_S)
             wait_for(lambda: session.now_s() >= until_s, 20.0 * (until_s - tracking_s) / time_scale + 120.0,
@@ -219,7 +224,8 @@ def run_nodes(domain: int, time_scale: float, kind: str, families: list[str], lo
     tracking_s = float(commanded[0]) - STEP_S if len(commanded) else tracking_s  # the state the first command answered
     notes = [] if tracking_s + settings.calibration_s < LOAD_STEP_S else \
         [f"tracking from {tracking_s:.0f} s: the watch was still calibrating at the load step"]
-    return NodesRun(states, watch, model_yaml, pushed_s, tracking_s, setpoint, time.monotonic() - started, timeouts,
+    return NodesRun(states, watch, model_yaml, pushed_s, tracking_s, setpoint, until_s, time.monotonic() - started,
+                    timeouts,
                     notes=notes + ([line for line in stage_log.splitlines() if "Traceback" in line][:1]))
 
 
@@ -346,20 +352,20 @@ def main() -> int:
     settings = BenchSettings(args.sine_period, args.calibration_windows)
     family_sets = [value.split(",") for value in args.families.split(";")]
     scales = [float(scale) for scale in args.time_scales.split(",")]
-    plan = [(families, scale, kind, args.load_step_n, LOAD_STEP_S + AFTER_STEP_S) for families in family_sets
+    plan = [(families, scale, kind, args.load_step_n, None) for families in family_sets
             for scale in scales for kind in args.setpoints.split(",") for _ in range(args.runs)]
     if args.hours:
-        plan.append((family_sets[0], max(scales), "sine", 0.0, LOAD_STEP_S - settings.calibration_s + 3600.0 * args.hours))
+        plan.append((family_sets[0], max(scales), "sine", 0.0, 3600.0 * args.hours))
     header = ("| families: model in force | time scale | setpoint | load step | bias_held_out_m um: nodes / record / process (ratio nodes:process) "
               "| flagged s after the step: nodes / record / process | flags before it: nodes / process "
               "| tracking RMS um: nodes / process | nodes - process RMS um | replay max um | lockstep timeouts | wall s |")
     print(f"refit after {EXCITE_S:g} s; sine period {settings.sine_period_s:g} s; watch defaults but "
           f"{settings.calibration_windows} calibration windows; load step at {LOAD_STEP_S:g} s")
     print(header, "|" + "---|" * 11, sep="\n", flush=True)
-    for index, (families, scale, kind, load_n, until_s) in enumerate(plan):
+    for index, (families, scale, kind, load_n, watched_s) in enumerate(plan):
         with tempfile.TemporaryDirectory() as folder:
             try:
-                run = run_nodes(FIRST_DOMAIN + index, scale, kind, families, load_n, until_s, Path(folder))
+                run = run_nodes(FIRST_DOMAIN + index, scale, kind, families, load_n, watched_s, Path(folder))
             except (RuntimeError, InputError) as error:
                 print(f"| {','.join(families)} | {scale:g} | {kind} | {load_n:g} N | failed: {error} |", flush=True)
                 continue
@@ -376,7 +382,7 @@ def main() -> int:
         reference = np.array([run.setpoint(t) for t in tracked[:, 0]])
         reference_process = np.array([run.setpoint(t) for t in tracked_process[:, 0]])
         in_force = getattr(any_model_from_yaml_text(run.model_yaml), "FAMILY", "GPI")
-        line = (f"| {','.join(families)}: {in_force} | {scale:g} | {kind} | {load_n:g} N, until {until_s:.0f} s | {1e6 * scale_nodes:.2f} / "
+        line = (f"| {','.join(families)}: {in_force} | {scale:g} | {kind} | {load_n:g} N, tracked {run.tracking_s:.0f}-{run.until_s:.0f} s | {1e6 * scale_nodes:.2f} / "
                 f"{1e6 * scale_record:.2f} / {1e6 * scale_process:.2f} ({ratio(scale_nodes, scale_process):.2f}) | "
                 f"{delay(flags_nodes, load_n)} / {delay(flags_record, load_n)} / {delay(flags_process, load_n)} | "
                 f"{before(flags_nodes, run.pushed_s, load_n)} / {before(flags_process, run.pushed_s, load_n)} | "
