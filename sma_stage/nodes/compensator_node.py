@@ -315,8 +315,7 @@ class CompensatorNode(Node):
             self.warnings.warn("setpoint", f"refused a non-finite setpoint ({value})")
             return
         with self._lock:
-            if not self.settings.enabled:
-                self.warnings.warn("disabled", "setpoint ignored: enabled is false (another node owns current_cmd)")
+            if not self.takes_setpoints():
                 return
             self.setpoint_m = value
             if self.settings.control_trigger == "timer":
@@ -331,12 +330,17 @@ class CompensatorNode(Node):
                                f"{self.settings.joint_name}")
             return
         with self._lock:
-            if not self.settings.enabled:
-                self.warnings.warn("disabled", "setpoint ignored: enabled is false (another node owns current_cmd)")
+            if not self.takes_setpoints():
                 return
             bisect.insort(self.scheduled, (Time.from_msg(message.header.stamp).nanoseconds,
                                            float(message.position[index])))
             del self.scheduled[:-MAX_SCHEDULED]
+
+    def takes_setpoints(self) -> bool:
+        """Whether a setpoint is taken now: not while enabled is false (said, at most once a while)."""
+        if not self.settings.enabled:
+            self.warnings.warn("disabled", "setpoint ignored: enabled is false (another node owns current_cmd)")
+        return self.settings.enabled
 
     def take_due_setpoint(self, now_ns: int) -> None:
         """The latest stamped setpoint due at now_ns [ns] becomes the setpoint; those before it are dropped."""
