@@ -263,8 +263,10 @@ def replay_and_track(run: NodesRun, load_n: float) -> tuple[np.ndarray, float]:
         core.follow_applied(value, STEP_S)
     rows = [row for row in run.states if row[0] < run.tracking_s]
     measured, time_s = rows[-1][1], rows[-1][0]
+    ahead_s = STEP_S * min(math.floor(core.preview_s() / STEP_S + 1e-9), AHEAD_STEPS)  # the node's preview
     for k in range(int(round((run.states[-1, 0] - time_s) / STEP_S))):
-        command = core.command(run.setpoint(time_s), measured, STEP_S if k else 0.0)
+        command = core.command(run.setpoint(time_s), measured, STEP_S if k else 0.0,
+                               ahead_m=run.setpoint(time_s + ahead_s))
         time_s += STEP_S
         measured = stage.step(command, STEP_S).measured_position_m
         rows.append((time_s, measured, command))

@@ -803,6 +803,33 @@ def test_a_stamped_setpoint_acts_from_its_stamp_however_early_it_came(ros):
     assert len(probe.commands.messages) == 3, "a command at each step with a setpoint due"
 
 
+def test_the_compensator_previews_the_stamped_setpoint_its_lag_ahead(ros):
+    """With setpoints stamped ahead, each step gives the core the latest one due preview_s later (the lag the lead
+    leaves); with preview false, none."""
+    compensator = compensator_node(ros, model_file=str(DEFAULT_MODEL_FILE), feedback=True,
+                                   control_trigger="joint_states")
+    probe = CompensatorProbe(ros, compensator)
+    preview_s = compensator.core.preview_s(True)
+    assert preview_s > 1.0
+
+    def at(seconds: float) -> int:
+        return RosTime(seconds=seconds).nanoseconds
+
+    compensator.scheduled = [(at(10.0), 1e-4), (at(10.0 + 0.5 * preview_s), 2e-4), (at(10.0 + 2.0 * preview_s), 3e-4)]
+    assert compensator.setpoint_ahead(at(10.0)) == 2e-4
+    assert compensator.setpoint_ahead(at(10.0 - 2.0 * preview_s)) is None
+    given = []
+    command = compensator.core.command
+    compensator.core.command = lambda *args, **kwargs: given.append(kwargs["ahead_m"]) or command(*args, **kwargs)
+    state = JointState(name=["stage_x"], position=[1e-4])
+    state.header.stamp = RosTime(seconds=10.0).to_msg()
+    probe.state_pub.publish(state)
+    wait_until(lambda: given, 5.0, "a command at 10 s")
+    assert compensator.setpoint_m == 1e-4 and given == [2e-4]
+    assert compensator.set_parameters([Parameter("preview", value=False)])[0].successful
+    assert compensator.setpoint_ahead(at(10.0)) is None
+
+
 def test_compensator_pi_integrates_the_error_with_anti_windup(ros):
     compensator = compensator_node(ros, feedback=True, tuning="manual", kp=0.0, ki=20.0, rate_hz=100.0,
                                   max_current=2.0)

@@ -64,6 +64,21 @@ PI loop 0.34 -> 1.75 % RMS. Without the copy the inverse resumed from a state th
 not seen the linear path's current: on the second physical stage (bench/bench_positioning.py's `nominal`) that state
 was 5 % of the stroke from the stage after a 60 s hold, and the 250 s sine that followed began 10 % of the stroke off.
 
+A preview (`ahead_m`, the setpoint `preview_s()` from now, for a caller that knows the setpoint ahead: a
+stamped stream sent early, a planned trajectory): the lead limit leaves the stage a first-order lag of tau / g
+(g = lead_limit in the loop, 3: 3.3 s for the shipped model's 9.9 s), which the PI loop closes only as fast as
+its own time constant. Driving the inverse towards the setpoint that lag ahead undoes it without the noise a
+stronger lead would amplify; the loop's error stays against the setpoint now. A step is not taken early: when
+the setpoint ahead moves faster than the model's lag lets the stage follow (its reach span in tau), the inverse
+is driven towards the setpoint now until that has caught up with the one ahead (a step taken early only leaves
+the level early, and in the loop the error against the level it left winds the integral the wrong way).
+bench/bench_positioning.py measures it on every plant, beside the loop without it.
+
+With a model that has a dead band, the relay (the current's sign: which wire is heated) does not switch back
+within RELAY_HOLD_S of a switch; the current stays within the dead band meanwhile. Where the loop's target sits at the hand-over between the
+wires, the wanted current crossed back and forth two to four times in 0.6 s at every hand-over (the `nominal`
+plant of bench/bench_positioning.py, a 100 s sine), each crossing a change of 1.5 A and a switch of the relay.
+
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
 (sma_stage.model.effects):
 - thermal_lag: its state is advanced with the command sent, held over each step (`lag_step` with equal
@@ -130,6 +145,7 @@ DEFAULT_FEEDFORWARD_LEAD_LIMIT = 10.0  # feedforward, while the setpoint moves
 DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT = 1.0  # feedforward, after a step and while the setpoint holds
 MOTION_WINDOW_S = 1.0  # a moving setpoint's change is compared over two windows this long [s]
 MOVING_RATE_RATIO = 2.0  # and agrees within this factor
+RELAY_HOLD_S = 1.0  # the relay switches back to the other wire no sooner than this after a switch [s]
 RESYNC_HOLD_S = 2.0  # the true model takes over after a hold of at least this long [s]
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
@@ -284,8 +300,13 @@ class Compensator:
         self._looped = False  # whether the last command ran the PI loop (had a measurement)
         self.saturated = 0
         self.command_a = self.drive.initial_current()
+        self._relay_side = (self.command_a > 0.0) - (self.command_a < 0.0)  # the wire the relay feeds: +1, -1, 0
+        self._relay_held_s = RELAY_HOLD_S  # since its last switch [s]
         self._hold_s = 0.0
         self._setpoint = _SetpointMotion()
+        self._ahead_m: float | None = None  # the last setpoint ahead given [m]
+        self._ahead_held_s = 0.0  # how long it has held [s]
+        self._previewing = True
         self._amps_per_m = 2.0 * self._limit / reach_span_m(self.drive)
         self._release_inverse()
 
@@ -311,6 +332,7 @@ class Compensator:
         reach = high - low
         shift = self.drive.predicted_m - previous.drive.predicted_m if previous._looped else 0.0
         self.command_a = previous.command_a
+        self._relay_side, self._relay_held_s = previous._relay_side, previous._relay_held_s
         self._commanded = previous._commanded
         self._looped = previous._looped
         self.integral_m = min(reach, max(-reach, previous.integral_m + shift))
@@ -318,6 +340,8 @@ class Compensator:
         self.target_m = previous.target_m + shift
         self._hold_s = previous._hold_s
         self._setpoint = previous._setpoint
+        self._ahead_m, self._ahead_held_s = previous._ahead_m, previous._ahead_held_s
+        self._previewing = previous._previewing
         self._previous_setpoint = previous._previous_setpoint
         self._inverse_target = None if previous._inverse_target is None else previous._inverse_target + shift
         self._inverse_direction = previous._inverse_direction
@@ -328,27 +352,36 @@ class Compensator:
         """The model's (slowest) thermal time constant [s] the lead undoes (0: none)."""
         return self.drive.tau_s
 
+    def preview_s(self, feedback: bool = True) -> float:
+        """How far ahead [s] a setpoint is worth knowing: the lag tau / g the lead leaves, g the lead limit in
+        force while the setpoint moves (lead_limit with a measurement, else feedforward_lead_limit)."""
+        return self.tau_s / (self._lead_limit if feedback else self._feedforward_lead_limit)
+
     def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
-                hold_s: float | None = None) -> float:
+                hold_s: float | None = None, ahead_m: float | None = None) -> float:
         """The current [A] for setpoint_m [m]; with measured_m [m] the PI loop acts, integrating the error
         over dt_s [s], the time since the previous call (0 for a call at the same instant). hold_s [s]: how
         long this command will be held, the step the lead brings the lag's state to v* over (default: dt_s
-        when above 0, else the previous hold; no lead before any)."""
-        setpoint = self._bounded(finite_number("setpoint_m", setpoint_m))
+        when above 0, else the previous hold; no lead before any). ahead_m [m]: the setpoint preview_s(...)
+        from now, when the caller knows it: the inverse is driven towards it, the loop's error stays against
+        setpoint_m (see the module's docstring)."""
+        now = self._bounded(finite_number("setpoint_m", setpoint_m))
         dt = _non_negative("dt_s", dt_s)
         measured = None if measured_m is None else self._bounded(finite_number("measured_m", measured_m))
         if hold_s is not None:
             self._hold_s = _non_negative("hold_s", hold_s)
         elif dt > 0.0:
             self._hold_s = dt
+        ahead = None if ahead_m is None else self._bounded(finite_number("ahead_m", ahead_m))
+        setpoint = self._previewed(now, ahead, dt)
+        moving = self._setpoint.moves(setpoint, dt)
         held = measured is not None and setpoint == self._previous_setpoint
         self._advance_models(held, measured, dt)
         self._held_s = self._held_s + dt if held else 0.0
         self.target_m = setpoint
         self._looped = measured is not None
-        moving = self._setpoint.moves(setpoint, dt)
         if measured is not None:
-            self.target_m = self._pi_target(setpoint, measured, dt, held and not moving)
+            self.target_m = self._pi_target(setpoint, measured, dt, held and not moving, now)
         limit = self._lead_limit
         if measured is None:
             limit = self._feedforward_lead_limit if moving else self._feedforward_step_lead_limit
@@ -365,8 +398,27 @@ class Compensator:
         if bounded != total:
             self.saturated = 1 if total > bounded else -1
         self._linear_a = bounded - min(self._limit, max(-self._limit, current))
-        self.command_a = self._rate_limited(bounded, dt)
+        self.command_a = self._relay_held(self._rate_limited(bounded, dt), dt)
         return self.command_a
+
+    def _previewed(self, now: float, ahead: float | None, dt: float) -> float:
+        """The setpoint [m] the inverse is driven towards: ahead, while the setpoint ahead moves no faster than the
+        model's lag lets the stage follow (reach span / tau per second); else now, from such a jump (a step) until
+        the setpoint now has caught up with the one ahead (see the module's docstring)."""
+        if ahead is None:
+            self._ahead_m = None
+            return now
+        self._ahead_held_s += dt
+        if self._ahead_m is not None and ahead != self._ahead_m:
+            tau = self.drive.tau_s
+            speed = abs(ahead - self._ahead_m) / max(min(self._ahead_held_s, 0.5 * MOTION_WINDOW_S), dt, 1e-9)
+            if tau > 0.0 and speed * tau > reach_span_m(self.drive):
+                self._previewing = False
+            self._ahead_held_s = 0.0
+        self._ahead_m = ahead
+        if ahead == now:
+            self._previewing = True
+        return ahead if self._previewing else now
 
     def _advance_models(self, held: bool, measured: float | None, dt: float) -> None:
         """Step the model over the dt [s] the last command was held: the inverse's model with its share of it, and
@@ -438,6 +490,20 @@ class Compensator:
         low, high = self._dead_band
         return high + allowed if allowed > 0.0 or (allowed == 0.0 and wanted > 0.0) else low + allowed
 
+    def _relay_held(self, current: float, dt: float) -> float:
+        """The current [A]; but within RELAY_HOLD_S [s] of the relay's last switch (a change of the current's sign:
+        the other wire), rather than switching it back, the last command within the model's dead band (where no
+        wire moves the stage); a model without a dead band: the current as it is. See the module's docstring."""
+        self._relay_held_s += dt
+        side = (current > 0.0) - (current < 0.0)
+        if side == 0 or side == self._relay_side:
+            return current
+        low, high = self._dead_band
+        if self._relay_side != 0 and self._relay_held_s < RELAY_HOLD_S and low < high:
+            return min(high, max(low, self.command_a))
+        self._relay_side, self._relay_held_s = side, 0.0
+        return current
+
     def _beyond_band(self, current: float) -> float:
         """How far [A] a current lies beyond the dead band (negative below it, 0 within it)."""
         low, high = self._dead_band
@@ -452,6 +518,8 @@ class Compensator:
         dt = _non_negative("dt_s", dt_s)
         self.drive.follow_applied(current, dt)
         self.command_a = current
+        self._relay_side = (current > 0.0) - (current < 0.0) or self._relay_side
+        self._relay_held_s = RELAY_HOLD_S
         self.integral_m = 0.0
         self._played_m = None
         self._commanded = False
@@ -464,9 +532,10 @@ class Compensator:
             return 0.0
         return abs(self._inverse_target - self.drive.predicted_m)
 
-    def _pi_target(self, setpoint: float, measured: float, dt: float, holding: bool) -> float:
-        """The loop's target [m]; holding: the setpoint holds and has not been moving (a step, then a hold)."""
-        error = setpoint - measured
+    def _pi_target(self, setpoint: float, measured: float, dt: float, holding: bool, now: float) -> float:
+        """The loop's target [m] for setpoint [m] (the one ahead, with a preview), the error against now [m];
+        holding: the setpoint holds and has not been moving (a step, then a hold)."""
+        error = now - measured
         if self.saturated * error <= 0.0 and not (holding and self._in_transit_m() > abs(error)):
             low, high = self.drive.target_bounds  # beyond them the integral changes no command: a bound
             reach = high - low

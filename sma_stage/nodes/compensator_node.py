@@ -18,7 +18,9 @@ sma_stage.control.compensator). With tuning `imc` (the default) kp and ki are de
 force (its lag, lead_limit, the control period 1/rate_hz and the time max_current_rate takes to move the
 current over half of max_current: control.compensator.imc_gains) and follow every new model; with `manual` the kp and ki parameters are used. The integral
 and the lead run on the node clock (simulated time with use_sim_time); the integral stops while the
-command saturates in the direction of the error (anti-windup). A command is published on each setpoint
+command saturates in the direction of the error (anti-windup). With setpoints stamped ahead and `preview` (the default), the inverse
+is driven towards the setpoint due the lag the lead leaves later (Compensator.preview_s: tau / lead_limit),
+the loop's error against the setpoint now. A command is published on each setpoint
 and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog): computed again in
 feedback mode or with a lag or drift in the model, the last one repeated otherwise. The control period
 1/rate_hz is counted on the node clock with use_sim_time (simulated seconds: the loop acts on the period
@@ -120,6 +122,9 @@ COMPENSATOR_PARAMS = [
           "the wall clock without use_sim_time (not applied with use_sim_time); the model, the lead, the PI loop "
           "and the rate limit count stage seconds", 0.001, 10000.0, read_only=True),
     Param("joint_name", JOINT_NAME, "joint of joint_states that carries the stage position", read_only=True),
+    Param("preview", True, "with setpoints stamped ahead (setpoint_stamped), drive the inverse towards the one due "
+          "the lag the lead leaves later (Compensator.preview_s), the loop's error against the setpoint now; false: "
+          "the setpoint now only"),
     Param("control_trigger", "timer", "when the loop computes a command: 'timer' (rate_hz, and at once on a new "
           "setpoint) or 'joint_states' (once for each position the stage publishes, at its stamp: the loop in step "
           "with the stage, as a simulated stage many times faster than the wall clock needs)", read_only=True),
@@ -392,7 +397,7 @@ class CompensatorNode(Node):
             if self.setpoint_m is None or not self.settings.enabled:
                 return
             if self.settings.feedback or self.core.drive.evolves:
-                self.publish_command(self.compute_command(self.elapsed_s(now_ns)))
+                self.publish_command(self.compute_command(self.elapsed_s(now_ns), self.setpoint_ahead(now_ns)))
             else:
                 self.publish_command(self.command_a)
 
@@ -426,9 +431,18 @@ class CompensatorNode(Node):
             return math.inf
         return (self.steady.now() - self._measured_at).nanoseconds * 1e-9
 
-    def compute_command(self, dt_s: float) -> float:
+    def setpoint_ahead(self, now_ns: int) -> float | None:
+        """The latest stamped setpoint [m] due by preview_s of stage time after now_ns [ns]; None when none is
+        scheduled by then or preview is false."""
+        if not self.settings.preview or not self.scheduled:
+            return None
+        horizon_ns = now_ns + round(self.core.preview_s(self.settings.feedback) / self.time_scale * 1e9)
+        due = bisect.bisect_right(self.scheduled, (horizon_ns, math.inf))
+        return self.scheduled[due - 1][1] if due else None
+
+    def compute_command(self, dt_s: float, ahead_m: float | None = None) -> float:
         """Current [A] for the setpoint, dt_s [s] after the previous command (PI integral), held for one control
-        period (the lead's step)."""
+        period (the lead's step); ahead_m [m]: the setpoint preview_s ahead, when one is known."""
         measured = self.measured_m if self.settings.feedback else None
         age_s = self.measurement_age_s()
         if self.settings.feedback and measured is None:
@@ -439,7 +453,8 @@ class CompensatorNode(Node):
                                f"{self.settings.measurement_timeout:g} s): current_cmd held at {self.command_a:g} A")
             return self.command_a
         try:
-            current = self.core.command(self.setpoint_m, measured, dt_s, hold_s=self.period_estimate_s)
+            current = self.core.command(self.setpoint_m, measured, dt_s, hold_s=self.period_estimate_s,
+                                        ahead_m=ahead_m)
         except InputError as error:  # a core that cannot command (e.g. manual gains too large) keeps the last one
             self.warnings.warn("command", f"current_cmd held at {self.command_a:g} A: {error}")
             return self.command_a
