@@ -198,10 +198,7 @@ def run_nodes(domain: int, time_scale: float, kind: str, families: list[str], lo
             wait_for(lambda: session.now_s() > excited_s + EXCITE_S + 10.0, 20.0 * EXCITE_S / time_scale + 60.0,
                      "the excitation", nodes.check_running)
             models_before = len(session.models)
-            frozen, message = client.set_bool("stage/freeze_time", True)  # the refit's wall time is not simulated time
-            if not frozen:
-                raise RuntimeError(f"stage/freeze_time: {message}")
-            retried(client, "identification/refit", "excitation is running", nodes.check_running, timeout_s=600.0)
+            refit_frozen(client, session, nodes.check_running)
             wait_for(lambda: len(session.models) > models_before, 60.0, "the refitted model", nodes.check_running)
             client.set_bool("stage/freeze_time", False)
             pushed_s, model_yaml = session.models[-1]
@@ -227,6 +224,25 @@ def run_nodes(domain: int, time_scale: float, kind: str, families: list[str], lo
     return NodesRun(states, watch, model_yaml, pushed_s, tracking_s, setpoint, until_s, time.monotonic() - started,
                     timeouts,
                     notes=notes + ([line for line in stage_log.splitlines() if "Traceback" in line][:1]))
+
+
+def refit_frozen(client: RosClient, session: Session, check) -> None:
+    """Call identification/refit with the stage's time frozen (the refit's wall time is not simulated time). An
+    excitation that started late in simulated time (a second of wall time at the start is 50 s at 50x) is let run
+    on unfrozen, 20 s of simulated time at a time, until it has ended."""
+    for _ in range(20):
+        frozen, message = client.set_bool("stage/freeze_time", True)
+        if not frozen:
+            raise RuntimeError(f"stage/freeze_time: {message}")
+        ok, message = client.trigger("identification/refit", timeout_s=600.0)
+        if ok:
+            return
+        if "excitation is running" not in message:
+            raise RuntimeError(f"identification/refit: {message}")
+        client.set_bool("stage/freeze_time", False)
+        until_s = session.now_s() + 20.0
+        wait_for(lambda until_s=until_s: session.now_s() > until_s, 60.0, "the excitation's end", check)
+    raise RuntimeError("identification/refit: the excitation did not end")
 
 
 def retried(client: RosClient, service: str, busy: str, check, timeout_s: float = 30.0) -> str:
