@@ -190,23 +190,23 @@ def test_a_setpoint_that_moves_after_a_hold_starts_from_where_the_stage_is(perio
     assert np.max(np.abs(errors)) < 8e-6, f"{1e6 * np.max(np.abs(errors)):.2f} um"
 
 
-def sine_tracked_um(preview: bool, period_s: float = 0.2) -> tuple[float, list[float]]:
+def sine_tracked_um(preview: bool, period_s: float = 0.2) -> float:
     """The shipped model in the loop on the simulator through a 100 s sine of 200 um amplitude (its first 100 s not
-    scored), with or without the setpoint preview_s ahead: (RMS error [um], the currents [A])."""
+    scored), with or without the setpoint preview_s ahead: the RMS error [um]."""
     model = load_any_model_file(DEFAULT_MODEL_FILE)
     stage = StageSimulator(seed=0)
     core = Compensator(model, LIMIT_A, **imc_gains(model, period_s))
     ahead = round(core.preview_s() / period_s) if preview else 0
     t = period_s * np.arange(int(300.0 / period_s) + ahead + 1)
     wanted = 2.5e-4 + 2e-4 * np.sin(2.0 * np.pi * np.maximum(t - 50.0, 0.0) / 100.0)
-    measured, dt_s, errors, currents = stage.state.measured_position_m, 0.0, [], []
+    measured, dt_s, errors = stage.state.measured_position_m, 0.0, []
     for k in range(int(300.0 / period_s)):
-        currents.append(core.command(wanted[k], measured, dt_s, ahead_m=wanted[k + ahead] if preview else None))
-        state = stage.step(currents[-1], period_s)
+        state = stage.step(core.command(wanted[k], measured, dt_s, ahead_m=wanted[k + ahead] if preview else None),
+                           period_s)
         measured, dt_s = state.measured_position_m, period_s
         if t[k] >= 100.0:
             errors.append(state.position_m - wanted[k + 1])
-    return 1e6 * float(np.sqrt(np.mean(np.square(errors)))), currents
+    return 1e6 * float(np.sqrt(np.mean(np.square(errors))))
 
 
 def test_a_preview_of_the_setpoint_tracks_a_sine_closer():
@@ -215,8 +215,8 @@ def test_a_preview_of_the_setpoint_tracks_a_sine_closer():
     core = Compensator(load_any_model_file(DEFAULT_MODEL_FILE), LIMIT_A)
     assert core.preview_s() == pytest.approx(core.tau_s / core.lead_limit)
     assert core.preview_s(feedback=False) == pytest.approx(core.tau_s / core.feedforward_lead_limit)
-    without, _ = sine_tracked_um(preview=False)
-    with_preview, _ = sine_tracked_um(preview=True)
+    without = sine_tracked_um(preview=False)
+    with_preview = sine_tracked_um(preview=True)
     assert with_preview < 0.7 * without, (with_preview, without)
 
 

@@ -152,6 +152,11 @@ DEFAULT_MAX_RATE_A_PER_S = 1.0
 LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (scan: bench/README.md at b315809)
 
 
+def _wire(current_a: float) -> int:
+    """The wire a current [A] heats, by its sign: +1, -1, or 0 for none."""
+    return (current_a > 0.0) - (current_a < 0.0)
+
+
 def checked_gains(kp: float, ki: float) -> dict[str, float]:
     """The loop's gains (kp [m/m], ki [1/s]) as floats; InputError unless each is finite and >= 0."""
     return {name: _non_negative(name, value) for name, value in {"kp": kp, "ki": ki}.items()}
@@ -300,7 +305,7 @@ class Compensator:
         self._looped = False  # whether the last command ran the PI loop (had a measurement)
         self.saturated = 0
         self.command_a = self.drive.initial_current()
-        self._relay_side = (self.command_a > 0.0) - (self.command_a < 0.0)  # the wire the relay feeds: +1, -1, 0
+        self._relay_side = _wire(self.command_a)  # the wire the relay feeds: +1, -1, 0
         self._relay_held_s = RELAY_HOLD_S  # since its last switch [s]
         self._hold_s = 0.0
         self._setpoint = _SetpointMotion()
@@ -495,7 +500,7 @@ class Compensator:
         the other wire), rather than switching it back, the last command within the model's dead band (where no
         wire moves the stage); a model without a dead band: the current as it is. See the module's docstring."""
         self._relay_held_s += dt
-        side = (current > 0.0) - (current < 0.0)
+        side = _wire(current)
         if side == 0 or side == self._relay_side:
             return current
         low, high = self._dead_band
@@ -518,7 +523,7 @@ class Compensator:
         dt = _non_negative("dt_s", dt_s)
         self.drive.follow_applied(current, dt)
         self.command_a = current
-        self._relay_side = (current > 0.0) - (current < 0.0) or self._relay_side
+        self._relay_side = _wire(current) or self._relay_side
         self._relay_held_s = RELAY_HOLD_S
         self.integral_m = 0.0
         self._played_m = None
