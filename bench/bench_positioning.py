@@ -241,6 +241,54 @@ def fastest_traverse_s(identified: Identified) -> tuple[float, float]:
     return times[0], times[1]
 
 
+def hand_over(identified: Identified) -> dict[str, float]:
+    """What a hand-over from one wire to the other costs on the plant itself (no model): the stage at rest at 0 A
+    after its identification record (its neutral, % of the stroke from the band's centre); per direction, how
+    long the stage held 15 % of the stroke beyond the neutral by the PI loop takes at 0 A to come within 2 % of
+    the neutral (drop [s], NaN: not in HOLD_S), and how long full current on the wire taking over takes to move it
+    1 % of the stroke from rest (dead [s]). While that wire heats, the other cools: the stage stands near its
+    neutral for dead - drop seconds (stall) whatever the law, since the relay heats one wire at a time."""
+    low, high = identified.stroke_m
+    span, centre = high - low, 0.5 * (low + high)
+    rest = copy.deepcopy(identified.plant)
+    for _ in range(int(HOLD_S / PERIOD_S)):
+        neutral = rest.step(0.0)
+    found = {"neutral_pct": 100.0 * (neutral - centre) / span}
+    for direction, current in (("down", -MAX_CURRENT_A), ("up", MAX_CURRENT_A)):
+        plant = copy.deepcopy(rest)
+        steps, position = 0, neutral
+        while abs(position - neutral) < 0.01 * span and steps < int(HOLD_S / PERIOD_S):
+            position = plant.step(current)
+            steps += 1
+        dead = PERIOD_S * steps if steps < int(HOLD_S / PERIOD_S) else float("nan")
+        plant = copy.deepcopy(rest)
+        compensator = Compensator(identified.model, MAX_CURRENT_A, **imc_gains(identified.model, PERIOD_S))
+        position = plant.step(compensator.drive.initial_current())
+        level = neutral - np.sign(current) * 0.15 * span
+        for _ in range(int(HOLD_S / PERIOD_S)):
+            position = plant.step(compensator.command(level, position, PERIOD_S))
+        steps = 0
+        while abs(position - neutral) > 0.02 * span and steps < int(HOLD_S / PERIOD_S):
+            position = plant.step(0.0)
+            steps += 1
+        drop = PERIOD_S * steps if steps < int(HOLD_S / PERIOD_S) else float("nan")
+        found[f"dead_{direction}_s"], found[f"drop_{direction}_s"] = dead, drop
+        found[f"stall_{direction}_s"] = max(0.0, dead - drop) if np.isfinite(dead) and np.isfinite(drop) else 0.0
+    return found
+
+
+def stall_floor_pct(period_s: float, found: dict[str, float]) -> float:
+    """The RMS error [% of the stroke] a sine of period_s over STROKE_FRACTION of the stroke suffers from the two
+    stalls of hand_over alone, each centred on the setpoint's crossing of the neutral (its best placing): the
+    setpoint moves at v there, so a stall of T costs v^2 T^3 / 12 of squared error per period."""
+    half = 50.0 * STROKE_FRACTION
+    if abs(found["neutral_pct"]) >= half:
+        return 0.0
+    speed = 2.0 * np.pi / period_s * np.sqrt(half**2 - found["neutral_pct"] ** 2)
+    stalls = found["stall_down_s"] ** 3 + found["stall_up_s"] ** 3
+    return float(np.sqrt(speed**2 * stalls / (12.0 * period_s)))
+
+
 HEADER = ("| plant | model (held-out RMS %) | setpoint | RMS / max %: " + "; ".join(m.name for m in MODES)
           + " | settled mean / max %: same order | p99 current change %: same order |\n|---|---|---|---|---|---|")
 
@@ -271,7 +319,8 @@ def main() -> None:
         parser.error(f"unknown plant {unknown[0]!r} (known: {', '.join(PLANTS)})")
     started = time.perf_counter()
     table = [HEADER]
-    traverse = ["| plant | fastest crossing of the band up / down [s] |", "|---|---|"]
+    traverse = ["| plant | fastest crossing of the band up / down [s] | neutral [%] | drop, dead, stall down / up [s] "
+                "| stall floor, sine 50 / 100 / 250 s [% RMS] |", "|---|---|---|---|---|"]
     print(HEADER, flush=True)
     for name in names:
         identified = identify(name, args.seed)
@@ -279,7 +328,11 @@ def main() -> None:
             table.append(line)
             print(line, flush=True)
         up, down = fastest_traverse_s(identified)
-        traverse.append(f"| {name} | {up:.1f} / {down:.1f} |")
+        found = hand_over(identified)
+        stalls = " / ".join(f"{found[f'drop_{d}_s']:.1f}, {found[f'dead_{d}_s']:.1f}, {found[f'stall_{d}_s']:.1f}"
+                            for d in ("down", "up"))
+        floors = " / ".join(f"{stall_floor_pct(period, found):.2f}" for period in (50.0, 100.0, 250.0))
+        traverse.append(f"| {name} | {up:.1f} / {down:.1f} | {found['neutral_pct']:.1f} | {stalls} | {floors} |")
     print("\n".join(traverse))
     note = (f"`.venv/bin/python bench/bench_positioning.py --plants {args.plants} --seed {args.seed}`: "
             f"{time.perf_counter() - started:.0f} s on {time.strftime('%Y-%m-%d')}; deterministic for a seed.")
@@ -287,7 +340,9 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = out.with_suffix(".tmp")
     staging.write_text("# Positioning stages the control law was not tuned on\n\n" + "\n".join(table) + "\n\n"
-                       + "The full current's crossing of the setpoints' band (no law crosses it faster):\n\n"
+                       + "The full current's crossing of the setpoints' band (no law crosses it faster), and what a "
+                       "hand-over costs (hand_over, stall_floor_pct; drop or dead NaN: not within 60 s, no stall "
+                       "counted):\n\n"
                        + "\n".join(traverse) + "\n\n" + note + "\n")
     staging.replace(out)
     print(note)
