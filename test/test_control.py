@@ -1,5 +1,6 @@
 """The control core: the lag lead, the PI loop with anti-windup, and its input checks (no ROS)."""
 
+import copy
 import math
 import subprocess
 import sys
@@ -481,6 +482,33 @@ def test_the_rate_limit_counts_the_current_beyond_the_dead_band_and_crosses_the_
     beyond = np.array([c - high if c > high else c - low if c < low else 0.0 for c in currents])
     assert np.max(np.abs(np.diff(beyond[1:]))) <= 0.1 + 1e-12
     assert np.max(np.abs(np.diff(currents[1:]))) >= high - low, "the band crossed in one step"
+
+
+@pytest.mark.parametrize("feedback", [False, True])
+def test_while_the_setpoint_moves_the_rate_limit_holds_within_the_band_but_at_the_relays_switch(feedback):
+    """A triangle across the reach (40 s a way) at 1 A/s, commanded every 0.1 s: away from its turning points (where
+    the setpoint stops moving) the current changes by at most 0.1 A a step on either wire's side, dead band and 0 A
+    included; only a switch of the relay crosses the band in one step."""
+    model = wires_moving_beyond(3.0)
+    low, high = dead_band_a(model, LIMIT_A)
+    core = Compensator(model, LIMIT_A, max_rate_a_per_s=1.0, **(imc_gains(model, 0.1) if feedback else {}))
+    bottom, top = core.drive.target_bounds
+    centre, half = (bottom + top) / 2, 0.4 * reach_span_m(core.drive)
+    t = 0.1 * np.arange(1600)
+    setpoints = centre + half * (2.0 * np.abs((t / 40.0) % 2.0 - 1.0) - 1.0)
+    stage = copy.deepcopy(core.drive)
+    currents = []
+    for k, setpoint in enumerate(setpoints):
+        currents.append(core.command(setpoint, stage.predicted_m if feedback else None, 0.1 if k else 0.0))
+        stage.advance(currents[-1], 0.1)
+    currents = np.array(currents)
+    change, after = np.abs(np.diff(currents)), currents[1:]
+    switch = np.sign(currents[:-1]) * np.sign(after) < 0
+    turning = np.abs((t[1:] + 20.0) % 40.0 - 20.0) > 17.0
+    steady = ~switch & ~turning & (t[1:] > 5.0)
+    assert np.any(switch) and np.min(change[switch]) > 0.5, "a switch of the relay crosses the band at once"
+    assert np.max(change[steady]) <= 0.1 + 1e-12
+    assert np.any(steady & (np.abs(after) < high)), "the band was crossed at the rate limit, not skipped"
 
 
 @pytest.mark.parametrize("hold_s", [0.0, RELAY_HOLD_S])

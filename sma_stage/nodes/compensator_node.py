@@ -112,8 +112,9 @@ COMPENSATOR_PARAMS = [
           "setpoint and while it holds [A/A] (1: no overshoot of the current)", 1.0, 1e6),
     Param("deadband", DEFAULT_DEADBAND_M, "half-width of the play on the loop's target [m] (a few sensor noise "
           "sigmas)", 0.0, 1e-2),
-    Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of stage time] beyond "
-          "the model's dead band (the currents near 0 A where no wire moves the stage: crossed at once); 0: no limit",
+    Param("max_current_rate", DEFAULT_MAX_RATE_A_PER_S, "largest change of the current [A/s of stage time]; a "
+          "switch of the relay crosses the model's dead band (the currents near 0 A where no wire moves the stage) "
+          "at once, and so does a held or stepped setpoint's current within it; 0: no limit",
           0.0, 1e6),
     Param("measurement_timeout", 1.0, "feedback: hold current_cmd while the latest joint_states is older than this "
           "[s, steady clock] (the stage stopped publishing)", 0.001, 3600.0),
