@@ -522,15 +522,16 @@ def test_the_relay_switches_back_no_sooner_than_its_hold(monkeypatch, hold_s):
     core = Compensator(model, LIMIT_A, max_rate_a_per_s=0.0)
     bottom, top = core.drive.target_bounds
     ends = (bottom + top) / 2 + np.array([0.4, -0.4]) * reach_span_m(core.drive)
-    currents = np.array([core.command(ends[k % 2], None, 0.1 if k else 0.0) for k in range(60)])
+    steps = round(6.0 * max(RELAY_HOLD_S, 1.0) / 0.1)
+    currents = np.array([core.command(ends[k % 2], None, 0.1 if k else 0.0) for k in range(steps)])
     signs = np.sign(currents[currents != 0.0])
     switches = np.nonzero(np.diff(signs))[0]
     if hold_s == 0.0:
-        assert switches.size >= 50
+        assert switches.size >= steps - 10
         return
     assert 3 <= switches.size <= 6 and np.min(np.diff(switches)) >= round(RELAY_HOLD_S / 0.1)
     in_band = (currents >= low) & (currents <= high)
-    assert np.sum(in_band) >= 20, "the current asked of the other wire within a hold stays in the dead band"
+    assert np.sum(in_band) >= steps // 3, "the current asked of the other wire within a hold stays in the dead band"
 
 
 def test_a_core_that_continues_another_moves_the_current_from_its_last_command_within_the_rate_limit():
