@@ -219,6 +219,24 @@ def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.nd
     return replace(result, settled_mean_pct=float(np.mean(settled)), settled_max_pct=float(np.max(settled)))
 
 
+def held_at(plant: SimulatorPlant | PhysicalPlant, current_a: float, position_m: float,
+            reached: Callable[[float], bool]) -> tuple[float, float, float]:
+    """current_a [A] held on the plant, from position_m [m], until reached(position) or HOLD_S: (the seconds it took,
+    NaN when not reached; the seconds held; the last position [m])."""
+    steps, limit = 0, int(HOLD_S / PERIOD_S)
+    while not reached(position_m) and steps < limit:
+        position_m = plant.step(current_a)
+        steps += 1
+    return (PERIOD_S * steps if reached(position_m) else float("nan")), PERIOD_S * steps, position_m
+
+
+def loop_held(plant: SimulatorPlant | PhysicalPlant, compensator: Compensator, level_m: float, position_m: float) -> float:
+    """level_m [m] held for HOLD_S by the compensator's PI loop from position_m [m]; the last position [m]."""
+    for _ in range(int(HOLD_S / PERIOD_S)):
+        position_m = plant.step(compensator.command(level_m, position_m, PERIOD_S))
+    return position_m
+
+
 def fastest_traverse_s(identified: Identified) -> tuple[float, float]:
     """How long [s] the plant takes at the full current to cross the setpoints' band (STROKE_FRACTION of the
     stroke, centred) upwards and then downwards, each from HOLD_S held at the band's far end by the PI loop: no
@@ -230,14 +248,10 @@ def fastest_traverse_s(identified: Identified) -> tuple[float, float]:
     measured = plant.step(compensator.drive.initial_current())
     times = []
     for start, end, current in ((centre - half, centre + half, MAX_CURRENT_A), (centre + half, centre - half, -MAX_CURRENT_A)):
-        for _ in range(int(HOLD_S / PERIOD_S)):
-            measured = plant.step(compensator.command(start, measured, PERIOD_S))
-        steps = 0
-        while (end - measured) * np.sign(end - start) > 0.0 and steps < int(HOLD_S / PERIOD_S):
-            measured = plant.step(current)
-            steps += 1
-        times.append(PERIOD_S * steps if (end - measured) * np.sign(end - start) <= 0.0 else float("nan"))
-        compensator.follow_applied(current, PERIOD_S * steps)
+        measured = loop_held(plant, compensator, start, measured)
+        took, held, measured = held_at(plant, current, measured, lambda y, s=start, e=end: (e - y) * np.sign(e - s) <= 0.0)
+        times.append(took)
+        compensator.follow_applied(current, held)
     return times[0], times[1]
 
 
@@ -255,23 +269,12 @@ def hand_over(identified: Identified) -> dict[str, float]:
         neutral = rest.step(0.0)
     found = {"neutral_pct": 100.0 * (neutral - centre) / span}
     for direction, current in (("down", -MAX_CURRENT_A), ("up", MAX_CURRENT_A)):
-        plant = copy.deepcopy(rest)
-        steps, position = 0, neutral
-        while abs(position - neutral) < 0.01 * span and steps < int(HOLD_S / PERIOD_S):
-            position = plant.step(current)
-            steps += 1
-        dead = PERIOD_S * steps if steps < int(HOLD_S / PERIOD_S) else float("nan")
+        dead, _, _ = held_at(copy.deepcopy(rest), current, neutral, lambda y: abs(y - neutral) >= 0.01 * span)
         plant = copy.deepcopy(rest)
         compensator = Compensator(identified.model, MAX_CURRENT_A, **imc_gains(identified.model, PERIOD_S))
-        position = plant.step(compensator.drive.initial_current())
         level = neutral - np.sign(current) * 0.15 * span
-        for _ in range(int(HOLD_S / PERIOD_S)):
-            position = plant.step(compensator.command(level, position, PERIOD_S))
-        steps = 0
-        while abs(position - neutral) > 0.02 * span and steps < int(HOLD_S / PERIOD_S):
-            position = plant.step(0.0)
-            steps += 1
-        drop = PERIOD_S * steps if steps < int(HOLD_S / PERIOD_S) else float("nan")
+        held = loop_held(plant, compensator, level, plant.step(compensator.drive.initial_current()))
+        drop, _, _ = held_at(plant, 0.0, held, lambda y: abs(y - neutral) <= 0.02 * span)
         found[f"dead_{direction}_s"], found[f"drop_{direction}_s"] = dead, drop
         found[f"stall_{direction}_s"] = max(0.0, dead - drop) if np.isfinite(dead) and np.isfinite(drop) else 0.0
     return found
