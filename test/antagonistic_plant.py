@@ -9,7 +9,10 @@ Two NiTi wires work against each other through a lever; a relay sends the curren
 - transformation: a Preisach continuum of temperature hysterons (a triangular grid of relays with switch-up
   temperatures alpha >= switch-down temperatures beta, Gaussian weights around the austenite and martensite
   transformation ranges); each relay sees T - sigma / C_CLAUSIUS, so the stress the wire carries raises its
-  transformation temperatures (Clausius-Clapeyron) - stress and position tie the two wires together;
+  transformation temperatures (Clausius-Clapeyron) - stress and position tie the two wires together. The
+  relays switch at the stresses the last sub-step left, unless the stresses that leaves would switch them back
+  (both wires hot at a hand-over: each pulls the other into stress-induced martensite); then they switch where
+  the stress they leave agrees with them (AntagonisticStage._equilibrium);
 - detwinning: the martensite that forms carries the recoverable strain only once the stress has detwinned
   it, D(sigma) rising between SIGMA_DETWIN_START and SIGMA_DETWIN_FINISH; detwinned martensite stays
   detwinned when the stress falls, and the austenite that forms takes from both kinds in proportion;
@@ -34,6 +37,11 @@ SUBSTEPS = 5
 NOISE_PCT = 0.2
 HISTORY_S = 200.0  # at zero current before the record: the wires settle from the initial state
 GRID = 60  # hysterons per side of the Preisach triangle
+CONSISTENT_SHARE = 0.05  # a sub-step whose own stresses would switch back more martensite than this is solved again
+CONSISTENT_K = 1.0  # (not checked where what the relays see moved less than this over the sub-step)
+EQUILIBRIUM_TOLERANCE_K = 0.05  # the relays' thresholds lie 0.7 K apart
+EQUILIBRIUM_SWEEPS = 8
+EQUILIBRIUM_STEP_K = 1.0  # the first step of the bracket's search
 
 
 @dataclass(frozen=True)
@@ -119,14 +127,24 @@ class Wire:
         decay = np.exp(-dt_s * self.loss_w_k / self.heat_capacity_j_k)
         self.temperature_k = target + (self.temperature_k - target) * decay
 
+    def seen_k(self, stress_pa: float) -> float:
+        """The temperature the relays see under stress_pa (Clausius-Clapeyron)."""
+        return self.temperature_k - stress_pa / self.stage.clausius_pa_per_k
+
+    def memory(self) -> tuple[np.ndarray, float, float]:
+        """The relays, martensite fraction and detwinned fraction: what a transformation starts from."""
+        return self.austenite, self._martensite, self.detwinned
+
     def transform(self, stress_pa: float) -> None:
         """Switch the relays at the stress-shifted temperature; austenite that forms takes from both martensites."""
-        before = self.martensite
-        seen = self.temperature_k - stress_pa / self.stage.clausius_pa_per_k
-        self.austenite = np.where(seen >= self.alpha, True, np.where(seen <= self.beta, False, self.austenite))
+        self.transform_from(self.memory(), self.seen_k(stress_pa))
+
+    def transform_from(self, memory: tuple[np.ndarray, float, float], seen_k: float) -> None:
+        """The relays switched from `memory` at the seen temperature seen_k."""
+        austenite, before, detwinned = memory
+        self.austenite = np.where(seen_k >= self.alpha, True, np.where(seen_k <= self.beta, False, austenite))
         self._martensite = after = 1.0 - float(self.weights[self.austenite].sum())
-        if after < before and before > 0.0:
-            self.detwinned *= after / before
+        self.detwinned = detwinned * after / before if after < before and before > 0.0 else detwinned
 
     def detwin(self, stress_pa: float) -> None:
         """Stress above the detwinning start detwins martensite; detwinned martensite stays so."""
@@ -189,15 +207,71 @@ class AntagonisticStage:
         self.stresses = (wire_a.stress_pa(strain_a), wire_b.stress_pa(strain_b))
 
     def step(self, current_a: float, dt_s: float) -> None:
-        """One sub-step: heat the wire the relay selects (both cool), transform, balance, detwin, balance."""
+        """One sub-step: heat the wire the relay selects (both cool), transform at the stresses the last sub-step
+        left, balance, detwin, balance. Where the stresses this leaves would switch the relays back by more than
+        CONSISTENT_SHARE (two hot wires at once pull each other into stress-induced martensite), the sub-step is
+        taken again at the stresses it leaves itself (_equilibrium): else the relays flip every sub-step."""
         heated = (max(current_a, 0.0), max(-current_a, 0.0))
-        for wire, current, stress in zip(self.wires, heated, self.stresses, strict=True):
+        memories = [wire.memory() for wire in self.wires]
+        for wire, current in zip(self.wires, heated, strict=True):
             wire.heat(current, dt_s)
-            wire.transform(stress)
+        used = [wire.seen_k(stress) for wire, stress in zip(self.wires, self.stresses, strict=True)]
+        if not self._consistent(memories, used, self._transformed(memories, used)):
+            self._equilibrium(memories, used)
+
+    def _transformed(self, memories: list, seen_k: list[float]) -> list[float]:
+        """Transform each wire from its memory at seen_k, balance, detwin, balance; what each wire then sees."""
+        for wire, memory, seen in zip(self.wires, memories, seen_k, strict=True):
+            wire.transform_from(memory, seen)
         self.balance()
         for wire, stress in zip(self.wires, self.stresses, strict=True):
             wire.detwin(stress)
         self.balance()
+        return [wire.seen_k(stress) for wire, stress in zip(self.wires, self.stresses, strict=True)]
+
+    def _consistent(self, memories: list, used: list[float], left: list[float]) -> bool:
+        """Whether transforming at the seen temperatures the sub-step left instead of those it used changes no
+        martensite fraction by more than CONSISTENT_SHARE (none when they differ by less than CONSISTENT_K)."""
+        for wire, memory, before, after in zip(self.wires, memories, used, left, strict=True):
+            if abs(after - before) < CONSISTENT_K:
+                continue
+            austenite = np.where(after >= wire.alpha, True, np.where(after <= wire.beta, False, memory[0]))
+            if abs(1.0 - float(wire.weights[austenite].sum()) - wire.martensite) > CONSISTENT_SHARE:
+                return False
+        return True
+
+    def _equilibrium(self, memories: list, seen: list[float]) -> None:
+        """The sub-step's transformation where each wire's relays switch at the temperature they see under the
+        stress that switching leaves (stress-induced transformation): per wire in turn, from `seen` (what the
+        relays saw at the sub-step's start), the seen temperature s with s = seen(s) (seen falls as s rises: more
+        austenite, more tension), bracketed in growing steps from where it was and then bisected."""
+        for _ in range(EQUILIBRIUM_SWEEPS):
+            moved = 0.0
+            for number in range(2):
+                started = seen[number]
+
+                def too_high(value: float, number: int = number) -> bool:
+                    seen[number] = value
+                    return self._transformed(memories, seen)[number] < value
+
+                step, low, high = EQUILIBRIUM_STEP_K, started, started
+                if too_high(started):
+                    while too_high(low):
+                        high, low, step = low, low - step, step * 4.0
+                else:
+                    while not too_high(high):
+                        low, high, step = high, high + step, step * 4.0
+                while high - low > EQUILIBRIUM_TOLERANCE_K:
+                    middle = 0.5 * (low + high)
+                    if too_high(middle):
+                        high = middle
+                    else:
+                        low = middle
+                seen[number] = low
+                moved = max(moved, abs(low - started))
+            if moved <= EQUILIBRIUM_TOLERANCE_K:
+                break
+        self._transformed(memories, seen)
 
     @property
     def position_m(self) -> float:

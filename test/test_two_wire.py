@@ -463,3 +463,28 @@ def test_the_compensator_saturates_towards_an_unreachable_target_and_refuses_the
     assert core.command(low - 0.1 * (high - low), dt_s=0.2) == -5.0 and core.saturated == -1
     with pytest.raises(InputError, match="exact inverse only"):
         Compensator(example_model(), 5.0, method="analytic")
+
+
+def test_a_hand_over_with_both_wires_hot_moves_the_second_stage_through_without_flipping_its_wires():
+    """Full current switched from wire b (held 60 s) to wire a: for a few seconds both wires are hot, and each
+    pulls the other into stress-induced martensite. The plant's relays switch where the stress they leave agrees
+    with them, so the stage moves over to wire a's side with no wire's martensite jumping by a quarter in a
+    sub-step and the stress within what a transformation plateau carries (before: the relays of both wires flipped
+    all the way every sub-step, 84 MPa <-> 3.01 GPa, holding the stage at 0 for 2 s)."""
+    from antagonistic_plant import SAMPLE_PERIOD_S, SUBSTEPS, AntagonisticStage
+
+    plant = AntagonisticStage(VARIANTS["nominal"])
+    dt = SAMPLE_PERIOD_S / SUBSTEPS
+    for current, seconds in ((0.0, 200.0), (-4.57, 60.0)):
+        for _ in range(round(seconds / dt)):
+            plant.step(current, dt)
+    start = plant.position_m
+    fractions, stresses, positions = [], [], []
+    for _ in range(round(15.0 / dt)):
+        plant.step(4.74, dt)
+        fractions.append([wire.martensite for wire in plant.wires])
+        stresses.append(max(plant.stresses))
+        positions.append(plant.position_m)
+    assert np.max(np.abs(np.diff(fractions, axis=0))) < 0.25
+    assert max(stresses) < 1.5e9
+    assert start < 0.0 < -0.9 * start < positions[-1]
