@@ -91,6 +91,12 @@ class StageSimulator:
         self._current, self._reading, self._noise = np.zeros(1), np.zeros(1), np.zeros(1)
         self._outputs = _allocate(1)
         self.reset()
+        self._load_step_kernel()
+
+    def _load_step_kernel(self) -> None:
+        """Compile the step's kernel (or load it from numba's cache) on a scratch copy of the state, so that the
+        first step does not wait for the compiler: a node's first control tick, on a cold cache, waited 13 s."""
+        ph.run(self._parameters, self._state.copy(), np.zeros(1), 1e-3, *_allocate(1))
 
     def reset(self) -> StageState:
         """Back to rest at t = 0 (wires at ambient, martensite, pre-strained); noise restarts from the seed."""
