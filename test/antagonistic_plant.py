@@ -10,9 +10,9 @@ Two NiTi wires work against each other through a lever; a relay sends the curren
   temperatures alpha >= switch-down temperatures beta, Gaussian weights around the austenite and martensite
   transformation ranges); each relay sees T - sigma / C_CLAUSIUS, so the stress the wire carries raises its
   transformation temperatures (Clausius-Clapeyron) - stress and position tie the two wires together. The
-  relays switch at the stresses the last sub-step left, unless the stresses that leaves would switch them back
-  (both wires hot at a hand-over: each pulls the other into stress-induced martensite); then they switch where
-  the stress they leave agrees with them (AntagonisticStage._equilibrium);
+  relays switch at the stresses the last sub-step left, unless the stresses their switching leaves would switch
+  them back (both wires hot at a hand-over: each pulls the other into stress-induced martensite); then they
+  switch where the stress they leave agrees with them (AntagonisticStage._equilibrium);
 - detwinning: the martensite that forms carries the recoverable strain only once the stress has detwinned
   it, D(sigma) rising between SIGMA_DETWIN_START and SIGMA_DETWIN_FINISH; detwinned martensite stays
   detwinned when the stress falls, and the austenite that forms takes from both kinds in proportion;
