@@ -139,11 +139,19 @@ class Wire:
         """Switch the relays at the stress-shifted temperature; austenite that forms takes from both martensites."""
         self.transform_from(self.memory(), self.seen_k(stress_pa))
 
+    def switched(self, austenite: np.ndarray, seen_k: float) -> np.ndarray:
+        """The relays (True: austenite) switched from `austenite` at the seen temperature seen_k [K]."""
+        return np.where(seen_k >= self.alpha, True, np.where(seen_k <= self.beta, False, austenite))
+
+    def martensite_of(self, austenite: np.ndarray) -> float:
+        """The martensite fraction of a state of the relays."""
+        return 1.0 - float(self.weights[austenite].sum())
+
     def transform_from(self, memory: tuple[np.ndarray, float, float], seen_k: float) -> None:
         """The relays switched from `memory` at the seen temperature seen_k."""
         austenite, before, detwinned = memory
-        self.austenite = np.where(seen_k >= self.alpha, True, np.where(seen_k <= self.beta, False, austenite))
-        self._martensite = after = 1.0 - float(self.weights[self.austenite].sum())
+        self.austenite = self.switched(austenite, seen_k)
+        self._martensite = after = self.martensite_of(self.austenite)
         self.detwinned = detwinned * after / before if after < before and before > 0.0 else detwinned
 
     def detwin(self, stress_pa: float) -> None:
@@ -235,8 +243,7 @@ class AntagonisticStage:
         for wire, memory, before, after in zip(self.wires, memories, used, left, strict=True):
             if abs(after - before) < CONSISTENT_K:
                 continue
-            austenite = np.where(after >= wire.alpha, True, np.where(after <= wire.beta, False, memory[0]))
-            if abs(1.0 - float(wire.weights[austenite].sum()) - wire.martensite) > CONSISTENT_SHARE:
+            if abs(wire.martensite_of(wire.switched(memory[0], after)) - wire.martensite) > CONSISTENT_SHARE:
                 return False
         return True
 

@@ -162,6 +162,10 @@ DEFAULT_MAX_RATE_A_PER_S = 1.0
 LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (scan: bench/README.md at b315809)
 
 
+def _within(value: float, centre: float, half_width: float) -> float:
+    """value clipped to centre +- half_width."""
+    return min(centre + half_width, max(centre - half_width, value))
+
 def _wire(current_a: float) -> int:
     """The wire a current [A] heats, by its sign: +1, -1, or 0 for none."""
     return (current_a > 0.0) - (current_a < 0.0)
@@ -500,9 +504,9 @@ class Compensator:
         if rate == 0.0 or first:
             return current
         if moving and _wire(current) * _wire(self.command_a) >= 0:
-            return min(self.command_a + rate * dt, max(self.command_a - rate * dt, current))
+            return _within(current, self.command_a, rate * dt)
         wanted, previous = self._beyond_band(current), self._beyond_band(self.command_a)
-        allowed = min(previous + rate * dt, max(previous - rate * dt, wanted))
+        allowed = _within(wanted, previous, rate * dt)
         if allowed == wanted:
             return current
         low, high = self._dead_band
@@ -563,5 +567,5 @@ class Compensator:
             raise InputError(f"the loop's target is not finite (setpoint {setpoint!r}, measured {measured!r})")
         played = self._played_m
         width = self._deadband_m
-        self._played_m = target if played is None else min(target + width, max(target - width, played))
+        self._played_m = target if played is None else _within(played, target, width)
         return self._played_m
