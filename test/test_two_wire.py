@@ -22,7 +22,7 @@ def example_model(wire_operators: int = 3, output_operators: int = 3) -> TwoWire
     values = {"tau_a_s": 4.0, "tau_b_s": 3.5, "heating_reference_a": 5.0, "coupling_a": 3800.0,
               "coupling_b": 4000.0, "centre_a": 1.6, "centre_b": 1.7, "width_a": 1.2, "width_b": 1.1,
               "hysteresis_a": 0.6, "hysteresis_b": 0.9, "stroke_a": 4e-4, "stroke_b": 3.5e-4, "offset": 1e-5,
-              "output_threshold": 8e-5, "resistance_drop": 0.3}
+              "output_threshold": 8e-5, "resistance_drop": 0.3, "tension_coupling": 0.4}
     return TwoWireModel(TwoWireParameters(values, tuple(np.linspace(0.1, 0.5, wire_operators)),
                                           tuple(np.linspace(0.4, 0.2, wire_operators)),
                                           tuple(np.linspace(0.7, 0.1, output_operators))))

@@ -21,6 +21,7 @@ from sma_stage.model.two_wire import (
     SETTLING_SUBSTEPS,
     SETTLING_TAUS,
     SUBSTEP_GROWTH,
+    TENSION_COUPLING,
     _rest,
 )
 
@@ -51,7 +52,7 @@ def _tangent_substep(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: in
                      step_s: float, shares: np.ndarray, dshares: np.ndarray, work: np.ndarray) -> float:
     """The model's _substep with every state's derivative (dstate, one row per state) carried beside it; shares
     and dshares (the wires' transformed shares at the step's start and their derivatives) are replaced by those
-    at its end. work: scratch rows (6, parameters). Returns the output at the end."""
+    at its end. work: scratch rows (8, parameters). Returns the output at the end."""
     count = p.size
     y_row = 2 + 2 * n + m
     reference = p[2]
@@ -62,6 +63,10 @@ def _tangent_substep(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: in
     ddrive, dseen, dfraction, dtotal, dpull = work[1], work[2], work[3], work[4], work[5]
     pull = 0.0
     dpull[:] = 0.0
+    coupling = p[TENSION_COUPLING]
+    first_shares = (shares[0], shares[1])  # the step's start's: the loop replaces them
+    first_dshares = work[6:8]
+    first_dshares[:] = dshares
     for wire in range(2):
         drive = 0.0
         ddrive[:] = 0.0
@@ -81,9 +86,11 @@ def _tangent_substep(state: np.ndarray, dstate: np.ndarray, p: np.ndarray, n: in
         dstate[wire, wire] += (before - drive) * decay * step_s / (p[wire] * p[wire])
         state[wire] = drive + (before - drive) * decay
         sign = 1.0 if wire == 0 else -1.0
-        seen = state[wire] - sign * p[3 + wire] * y_before
+        other = 1 - wire
+        seen = state[wire] - sign * p[3 + wire] * y_before - coupling * first_shares[other]
         for c in range(count):
-            dseen[c] = dstate[wire, c] - sign * p[3 + wire] * dy_before[c]
+            dseen[c] = dstate[wire, c] - sign * p[3 + wire] * dy_before[c] - coupling * first_dshares[other, c]
+        dseen[TENSION_COUPLING] -= first_shares[other]
         dseen[3 + wire] -= sign * y_before
         hysteresis = p[9 + wire]
         fraction, total = 0.0, 0.0
@@ -194,7 +201,7 @@ def run_with_sensitivities(t: np.ndarray, u: np.ndarray, p: np.ndarray, n: int, 
     count = p.size
     shares = np.empty(2)
     dshares = np.empty((2, count))
-    work = np.empty((6, count))
+    work = np.empty((8, count))
     _initial_shares(state, dstate, p, n, shares, dshares)
     y_row = 2 + 2 * n + m
     out[0] = state[y_row]

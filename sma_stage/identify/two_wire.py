@@ -46,6 +46,8 @@ MIN_HEATED_SAMPLES = 10  # each wire must be heated in at least this many sample
 TAU_RANGE_S = (0.05, 500.0)
 RESISTANCE_DROP_RANGE = (0.0, 0.9)  # NiTi's resistance falls by about a fifth from martensite to austenite
 RESISTANCE_DROP_START = (0.05, 0.3)
+TENSION_COUPLING_RANGE = 2.0  # the tension coupling's bound, times the heating reference
+TENSION_COUPLING_START = (0.0, 0.3)  # times the heating reference
 
 
 @dataclass(frozen=True)
@@ -239,7 +241,8 @@ class _Problem:
                    "width_b": (0.005 * reference, reference), "hysteresis_a": (0.0, reference),
                    "hysteresis_b": (0.0, reference), "stroke_a": (0.0, 3.0 * span), "stroke_b": (0.0, 3.0 * span),
                    "offset": (-level - span, level + span), "output_threshold": (0.0, span),
-                   "resistance_drop": RESISTANCE_DROP_RANGE}
+                   "resistance_drop": RESISTANCE_DROP_RANGE,
+                   "tension_coupling": (0.0, TENSION_COUPLING_RANGE * reference)}
         free = [name for name in SCALARS if name != "heating_reference_a"]
         weights = 2 * self.n + self.m
         low = np.r_[[scalars[name][0] for name in free], np.zeros(weights)]
@@ -253,7 +256,7 @@ class _Problem:
         start = np.r_[pair(2.0, 20.0), rng.uniform(-1.0, 1.0, 2) * reference / span, pair(0.3, 0.8) * reference,
                       pair(0.05, 0.2) * reference, pair(0.05, 0.3) * reference, np.full(2, span / 2.0),
                       float(np.mean(self.y)) - 0.0, rng.uniform(0.01, 0.2) * span,
-                      rng.uniform(*RESISTANCE_DROP_START),
+                      rng.uniform(*RESISTANCE_DROP_START), rng.uniform(*TENSION_COUPLING_START) * reference,
                       np.full(2 * self.n, 1.0 / self.n), np.full(self.m, 1.0 / self.m)]
         start = start[self.tie.argmax(axis=0)]
         return np.clip(start, self.low + 1e-9 * (self.high - self.low), self.high - 1e-9 * (self.high - self.low))

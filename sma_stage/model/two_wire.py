@@ -7,7 +7,10 @@ two wires' transformations pull together. Per wire w (a: heated by u > 0, b: by 
   heating, which falls as the wire transforms (austenite conducts better than martensite: d = resistance_drop,
   xhat_w the wire's transformed share x_w / sum_j p_wj at the start of the step);
 - transformation: what the wire sees is its temperature shifted by the stress the stage's position puts on it
-  (Clausius-Clapeyron), seen_a = theta_a - coupling_a y, seen_b = theta_b + coupling_b y; the transformed
+  and by the tension the other wire's transformation pulls into the pair (Clausius-Clapeyron),
+  seen_a = theta_a - coupling_a y - k xhat_b, seen_b = theta_b + coupling_b y - k xhat_a, k = tension_coupling
+  >= 0 (at a hand-over the wire still hot holds the heated one back until it cools, and the heated one then pulls
+  it out of its transformation); the transformed
   fraction x_w = sum_j p_wj sigma((P_rj[seen_w] - centre_w) / width_w), P_r the play operator of threshold
   r_j = hysteresis_w j / (n - 1) and sigma(s) = (1 + tanh s) / 2 (a Preisach-like family of transformation
   curves, the weights p_wj >= 0 free);
@@ -37,13 +40,15 @@ from sma_stage.model.held import HeldCurrentModel, HeldState
 KIND = "two_wire"
 SCALARS = ("tau_a_s", "tau_b_s", "heating_reference_a", "coupling_a", "coupling_b", "centre_a", "centre_b",
            "width_a", "width_b", "hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "offset",
-           "output_threshold", "resistance_drop")
+           "output_threshold", "resistance_drop", "tension_coupling")
 WEIGHTS = ("weights_a", "weights_b", "output_weights")
 POSITIVE = ("tau_a_s", "tau_b_s", "heating_reference_a", "width_a", "width_b")
-NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold", "resistance_drop")
-DEFAULTS = {"resistance_drop": 0.0}  # what a model file written before the parameter existed was fitted with
+NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold", "resistance_drop",
+                "tension_coupling")
+DEFAULTS = {"resistance_drop": 0.0, "tension_coupling": 0.0}  # what a model file written before each existed was fitted with
 FIRST_WEIGHT = len(SCALARS)  # where the weights start in the kernel's parameter vector
 RESISTANCE_DROP = SCALARS.index("resistance_drop")
+TENSION_COUPLING = SCALARS.index("tension_coupling")
 MAX_OPERATORS = 50
 HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hysteresis in it, the output a\n"
           "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
@@ -61,7 +66,8 @@ SETTLING_SUBSTEPS = 30  # sub-steps over those time constants at most (longer on
 @dataclass(frozen=True)
 class TwoWireParameters:
     """The model's scalars (units: s, A of heating, output unit; couplings in A per output unit; resistance_drop
-    dimensionless, 0 to 1, 0 when a model file has none) and its three weight vectors (dimensionless, >= 0)."""
+    dimensionless, 0 to 1; tension_coupling in A of heating per wire's full transformation; each of the last two 0
+    when a model file has none) and its three weight vectors (dimensionless, >= 0)."""
 
     values: Mapping[str, float]
     weights_a: tuple[float, ...]
@@ -188,9 +194,8 @@ def _shares(state: np.ndarray, p: np.ndarray, n: int) -> tuple[float, float]:
 @numba.njit(cache=True, nogil=True)
 def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float) -> float:
     """Hold `current` [A] for step_s [s] from `state` (changed in place); the output at the end."""
-    heated = 0 if current > 0.0 else 1
-    share = _transformed_share(state, p, n, heated) if current != 0.0 and p[RESISTANCE_DROP] > 0.0 else 0.0
-    return _advance_from(state, p, n, m, current, step_s, share, share)[0]  # only the heated wire's is read
+    share_a, share_b = _shares(state, p, n)
+    return _advance_from(state, p, n, m, current, step_s, share_a, share_b)[0]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -232,7 +237,7 @@ def _substep(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
             drive *= 1.0 - p[RESISTANCE_DROP] * shares[wire]
         state[wire] = drive + (state[wire] - drive) * math.exp(-step_s / p[wire])
         sign = 1.0 if wire == 0 else -1.0
-        seen = state[wire] - sign * p[3 + wire] * y_before
+        seen = state[wire] - sign * p[3 + wire] * y_before - p[TENSION_COUPLING] * shares[1 - wire]
         centre, width, hysteresis = p[5 + wire], p[7 + wire], p[9 + wire]
         fraction, total = 0.0, 0.0
         for j in range(n):
@@ -263,22 +268,28 @@ def _rest(p: np.ndarray, n: int, m: int, state: np.ndarray) -> None:
     """The state of a stage long at zero current: cold wires, plays at what they see, the output settled."""
     state[:] = 0.0
     y = 0.0
-    for _ in range(200):  # the coupling makes rest a fixed point of the output
+    shares = np.zeros(2)
+    for _ in range(200):  # the couplings make rest a fixed point of the output
         state[2 + 2 * n + m] = y
         pull = 0.0
+        before = shares.copy()
         for wire in range(2):
             sign = 1.0 if wire == 0 else -1.0
-            seen = -sign * p[3 + wire] * y
-            fraction = 0.0
+            seen = -sign * p[3 + wire] * y - p[TENSION_COUPLING] * before[1 - wire]
+            fraction, total = 0.0, 0.0
             for j in range(n):
                 state[2 + wire * n + j] = seen
-                fraction += p[FIRST_WEIGHT + wire * n + j] * _sigma((seen - p[5 + wire]) / p[7 + wire])
+                weight = p[FIRST_WEIGHT + wire * n + j]
+                total += weight
+                fraction += weight * _sigma((seen - p[5 + wire]) / p[7 + wire])
             pull += sign * p[11 + wire] * fraction
+            shares[wire] = 0.5 * (before[wire] + (fraction / total if total > 0.0 else 0.0))
         y_new = p[13]
         for k in range(m):
             state[2 + 2 * n + k] = pull
             y_new += p[FIRST_WEIGHT + 2 * n + k] * pull
-        if abs(y_new - y) <= 1e-15 * (1.0 + abs(y)):
+        settled = p[TENSION_COUPLING] == 0.0 or np.all(np.abs(shares - before) <= 1e-15)
+        if abs(y_new - y) <= 1e-15 * (1.0 + abs(y)) and settled:
             y = y_new
             break
         y = 0.5 * (y + y_new)  # damped: a strong coupling would make the plain iteration oscillate
