@@ -81,10 +81,11 @@ def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: W
     if family == "bouc_wen":
         return pool.submit(fit_bouc_wen, ident.t, ident.input, ident.output, output_unit)
     try:
-        fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool)
+        fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool,
+                                 held_out=held_out)
     except InputError as error:
         return Pending(partial(_raise, error))
-    return Pending(partial(fitting.result, held_out), begin=partial(fitting.polish, held_out))
+    return Pending(fitting.result, begin=fitting.polish)
 
 
 def _raise(error: Exception) -> None:
@@ -106,7 +107,8 @@ def held_current_row(family: str, fitting: Pending, record: Series | None, score
     if family == "two_wire":
         params = found.model.parameters
         description = (f"two-wire, {params.wire_operators} operators per wire, {params.output_operators} output "
-                       "operators" + (f", the start of {found.admitted} that predicts best" if found.admitted > 1 else ""))
+                       "operators" + (f", the start of {found.admitted} that predicts best" if found.admitted > 1 else "")
+                       + (f"; {found.tension}" if found.tension else ""))
     else:
         description = f"Bouc-Wen through a heating lag of {found.model.tau_s:.3g} s"
     return FamilyRow(family, description, found.parameter_count, found.errors, validation, found.bic), found

@@ -2,6 +2,11 @@
 squares (scipy's trust-region reflective) on the output error, from several starts searched on a thinned copy of
 the record, the best polished on all of it. Plain arrays in, a result object out.
 
+The tension coupling (each wire's transformation shifted by the other's transformed share) is judged like a
+diagnosis's effect: with a held-out record, the leaders are polished again with it free, and it is kept when it
+lowers the BIC and the held-out RMS error by the diagnosis's first-round margins (diagnosis.judge); without
+one it stays at 0.
+
 `shapes`: "shared" (the default) gives both wires one transformation shape (width, hysteresis width, weights),
 each wire keeping its own time constant, centre, coupling and stroke; "per_wire" frees them all. Per-wire shapes
 predict the stage simulator better and the second physical stage worse in its worst records
@@ -12,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -22,6 +27,7 @@ from sma_stage.identify._two_wire_sensitivity import rest_with_sensitivities, ru
 from sma_stage.identify.cancel import check_cancelled
 from sma_stage.identify.checks import check_data
 from sma_stage.identify.counts import COUNT_FIT_MARGIN
+from sma_stage.identify.diagnosis import judge
 from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
 from sma_stage.identify.workers import Pending, Workers
@@ -47,7 +53,8 @@ TAU_RANGE_S = (0.05, 500.0)
 RESISTANCE_DROP_RANGE = (0.0, 0.9)  # NiTi's resistance falls by about a fifth from martensite to austenite
 RESISTANCE_DROP_START = (0.05, 0.3)
 TENSION_COUPLING_RANGE = 2.0  # the tension coupling's bound, times the heating reference
-TENSION_COUPLING_START = (0.0, 0.3)  # times the heating reference
+TENSION_COUPLING_START = (0.0, 0.3)  # its random starts, times the heating reference
+COUPLED_START = 0.1  # and where the polish from each leader without it starts
 
 
 @dataclass(frozen=True)
@@ -64,6 +71,7 @@ class TwoWireFit:
     seconds: float
     parameter_count: int  # free parameters fitted (shared shapes count once)
     admitted: int = 0  # starts that fitted within START_FIT_MARGIN of the best, the held-out error chose among (0: none)
+    tension: str = ""  # why the tension coupling was kept or left at 0 ("": not judged, no held-out record)
 
 
 def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
@@ -73,9 +81,10 @@ def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: in
     """The two-wire model that best predicts y [output unit] from u [A] at times t [s], the record starting
     from a stage at rest. InputError (one line) when the record cannot identify it. pool: its processes search
     the starts and polish the leaders at once (the result is the same without). held_out: a record the starts
-    that fit within START_FIT_MARGIN of the best are told apart on (TwoWireFitting.result)."""
-    return TwoWireFitting(t, u, y, wire_operators, output_operators, starts, seed, output_unit, shapes,
-                          pool).result(held_out)
+    that fit within START_FIT_MARGIN of the best are told apart on, and the tension coupling judged on
+    (TwoWireFitting.result)."""
+    return TwoWireFitting(t, u, y, wire_operators, output_operators, starts, seed, output_unit, shapes, pool,
+                          held_out).result()
 
 
 @dataclass(frozen=True)
@@ -88,19 +97,25 @@ class HeldOut:
     y: np.ndarray
     scored_from: int = 0
 
+    def errors(self, model: TwoWireModel) -> ErrorMetrics:
+        """The model's errors on the scored samples."""
+        return error_metrics(self.y[self.scored_from:], model.predict(self.t, self.u)[self.scored_from:])
+
     def rms_pct(self, model: TwoWireModel) -> float:
         """The model's RMS error on the scored samples [% of their span]."""
-        return error_metrics(self.y[self.scored_from:], model.predict(self.t, self.u)[self.scored_from:]).rms_pct
+        return self.errors(model).rms_pct
 
 
 class TwoWireFitting:
     """A two-wire fit under way (fit_two_wire's arguments): the record checked and the starts submitted to the
-    pool's processes when it is made, so that other work goes on meanwhile; `result()` waits for them,
-    polishes the leaders and gives the TwoWireFit."""
+    pool's processes when it is made (with a held-out record, the starts with the tension coupling free too), so
+    that other work goes on meanwhile; `result()` waits for them, polishes the leaders and gives the
+    TwoWireFit."""
 
     def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
-                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None) -> None:
+                 output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None,
+                 held_out: HeldOut | None = None) -> None:
         self.started = time.perf_counter()
         t, u = checked_record(t, u)
         u, y = check_data(u, y)
@@ -112,54 +127,93 @@ class TwoWireFitting:
             if np.count_nonzero(heated) < MIN_HEATED_SAMPLES:
                 raise InputError(f"the two-wire model needs both wires heated: wire {wire} is heated in "
                                  f"{np.count_nonzero(heated)} samples (at least {MIN_HEATED_SAMPLES})")
-        self.t, self.u, self.y, self.output_unit, self.shapes = t, u, y, output_unit, shapes
+        self.t, self.u, self.y, self.output_unit, self.shapes, self.held_out = t, u, y, output_unit, shapes, held_out
         self.pool = pool or Workers()
         fine = -(-t.size // POLISH_SAMPLES)
         self.problem = _Problem(t[::fine], u[::fine], y[::fine], wire_operators, output_operators, shapes)
         thin = max(1, t.size // SEARCH_SAMPLES)
         self.search = _Problem(t[::thin], u[::thin], y[::thin], wire_operators, output_operators,
                                shapes) if thin > fine else self.problem
-        rng = np.random.default_rng(seed)
-        self.searching = [self.pool.submit(_solve, self.search, self.search.random_start(rng), SEARCH_EVALUATIONS,
-                                           SEARCH_TOLERANCE) for _ in range(starts)]
+        self.coupled = _Problem(self.problem.t, self.problem.u, self.problem.y, wire_operators, output_operators,
+                                shapes, tension=True)
+        self.coupled_search = _Problem(self.search.t, self.search.u, self.search.y, wire_operators,
+                                       output_operators, shapes, tension=True)
+        self.starts, self.seed = starts, seed
+        self.searching = self._search(self.search)
+        self._coupled_searching = self._search(self.coupled_search) if held_out is not None else []
         self._polishing: list[Pending] | None = None
+        self._coupled_polishing: list[Pending] = []
         self._searched_evaluations, self._admitted = 0, []
 
-    def polish(self, held_out: HeldOut | None = None) -> None:
+    def _search(self, problem: _Problem) -> list[Pending]:
+        """The starts' searches of a problem, handed to the pool (the same starts for a seed)."""
+        rng = np.random.default_rng(self.seed)
+        return [self.pool.submit(_solve, problem, problem.random_start(rng), SEARCH_EVALUATIONS, SEARCH_TOLERANCE)
+                for _ in range(self.starts)]
+
+    def polish(self) -> None:
         """Wait for the starts and hand the polish of the leaders to the pool (once; `result` does it when it was
-        not done): the POLISHED best fits, or with held_out the best fit and the POLISHED other starts within
-        START_FIT_MARGIN of it that predict held_out best."""
+        not done): the POLISHED best fits, or with a held-out record the best fit and the POLISHED other starts
+        within START_FIT_MARGIN of it that predict it best (so too of the starts with the tension coupling)."""
         if self._polishing is not None:
             return
         searched = _finished(self.searching, "start's search")
+        leaders, self._admitted = self._leaders(searched, self.search)
         self._searched_evaluations = sum(found.nfev for found in searched)
-        self._admitted = _admitted(searched) if held_out is not None else []
-        leaders = searched[:POLISHED]
-        if held_out is not None:
-            leaders = searched[:1] + sorted(self._admitted[1:], key=_held_out_error(held_out, self.search))[:POLISHED]
         self._polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
                            for found in leaders]
+        if self._coupled_searching:
+            coupled_searched = _finished(self._coupled_searching, "start's search with the tension coupling")
+            self._searched_evaluations += sum(found.nfev for found in coupled_searched)
+            starts = [found.x for found in self._leaders(coupled_searched, self.coupled_search)[0]]
+            starts += [self.coupled.coupled_start(self.search, found.x) for found in leaders]
+            self._coupled_polishing = [self.pool.submit(_solve, self.coupled, start, POLISH_EVALUATIONS,
+                                                        DEFAULT_TOLERANCE) for start in starts]
 
-    def result(self, held_out: HeldOut | None = None) -> TwoWireFit:
-        """The fitted model: the polished leaders (`polish`) and the best of them kept; with held_out, of those
-        still within START_FIT_MARGIN of the best fit, the one that predicts held_out best."""
-        self.polish(held_out)
+    def _leaders(self, searched: list, problem: _Problem) -> tuple[list, list]:
+        """The searched starts (ranked by cost) to polish and those admitted (within START_FIT_MARGIN of the
+        best; none without a held-out record)."""
+        if self.held_out is None:
+            return searched[:POLISHED], []
+        admitted = _admitted(searched)
+        return searched[:1] + sorted(admitted[1:], key=_held_out_error(self.held_out, problem))[:POLISHED], admitted
+
+    def result(self) -> TwoWireFit:
+        """The fitted model: the polished leaders (`polish`) and the best of them kept; with a held-out record,
+        of those still within START_FIT_MARGIN of the best fit, the one that predicts it best, and the same of
+        the fits with the tension coupling kept instead when it passes the diagnosis's rule there (judge)."""
+        self.polish()
+        held_out = self.held_out
         polishing, evaluations, admitted = self._polishing, self._searched_evaluations, self._admitted
         leaders = _finished(polishing, "leader's polish")
         evaluations += sum(found.nfev for found in leaders)
         best = leaders[0]
         if held_out is not None:
             best = min(_admitted(leaders), key=_held_out_error(held_out, self.problem))
-        problem, t, u, y = self.problem, self.t, self.u, self.y
-        model = TwoWireModel(problem.parameters(best.x), self.output_unit)
+        fitted, tension = self._fitted(self.problem, best), ""
+        if self._coupled_polishing:
+            coupled = _finished(self._coupled_polishing, "leader's polish with the tension coupling")
+            evaluations += sum(found.nfev for found in coupled)
+            candidate = self._fitted(self.coupled, min(_admitted(coupled), key=_held_out_error(held_out, self.coupled)))
+            kept, reason = judge(candidate.bic - fitted.bic, held_out.errors(candidate.model),
+                                 held_out.errors(fitted.model))
+            tension = f"tension coupling {'kept' if kept else 'left at 0'}: {reason}"
+            fitted = candidate if kept else fitted
+        return replace(fitted, evaluations=evaluations, seconds=time.perf_counter() - self.started,
+                       admitted=len(admitted), tension=tension)
+
+    def _fitted(self, problem: _Problem, found: object) -> TwoWireFit:
+        """The TwoWireFit of a least-squares result of `problem`, run on the whole record (its evaluations and
+        seconds left to the caller)."""
+        t, u, y = self.t, self.u, self.y
+        model = TwoWireModel(problem.parameters(found.x), self.output_unit)
         predicted, end = model.run(t, u)
         cost = float(np.sum((predicted - y) ** 2))
         count = problem.tie.shape[1]
         model = TwoWireModel(model.parameters, self.output_unit, end,
                              {"identified_samples": int(t.size), "shapes": self.shapes})
         return TwoWireFit(model, predicted, error_metrics(y, predicted), cost,
-                          information_criterion(cost, t.size, count), evaluations,
-                          time.perf_counter() - self.started, count, len(admitted))
+                          information_criterion(cost, t.size, count), 0, 0.0, count)
 
 
 def _held_out_error(held_out: HeldOut, problem: _Problem) -> Callable[[object], float]:
@@ -176,7 +230,9 @@ def _solve(problem: _Problem, start: np.ndarray, evaluations: int, tolerance: fl
     """One least-squares run of the problem from a start (a job of the pool's processes); None when the run met
     values that are not finite (a start whose model overflows: scipy refuses the Jacobian)."""
     try:
-        return problem.solve(start, evaluations, tolerance)
+        # scipy cubes huge damping terms where its trust region is tiny: a warning no user can act on
+        with np.errstate(over="ignore"):
+            return problem.solve(start, evaluations, tolerance)
     except (ValueError, np.linalg.LinAlgError):
         return None
 
@@ -193,14 +249,17 @@ def _finished(pending: list[Pending], what: str) -> list:
 SHAPES = ("per_wire", "shared")  # each wire its own transformation shape, or one shape for both
 
 
-def _tie(wire_operators: int, output_operators: int, shapes: str) -> np.ndarray:
-    """The 0/1 matrix that spreads the free parameters over the full vector (SCALARS less the heating
-    reference, then the weights): `shared` ties the wires' widths, hysteresis widths and weights."""
+FULL_NAMES = [name for name in SCALARS if name != "heating_reference_a"]  # the full vector's scalars
+
+
+def _tie(wire_operators: int, output_operators: int, shapes: str, tension: bool = False) -> np.ndarray:
+    """The 0/1 matrix that spreads the free parameters over the full vector (FULL_NAMES, then the weights):
+    `shared` ties the wires' widths, hysteresis widths and weights; without `tension` the tension coupling has
+    no column (it is 0)."""
     if shapes not in SHAPES:
         raise InputError(f"shapes must be one of {', '.join(SHAPES)}, got {shapes!r}")
-    names = [name for name in SCALARS if name != "heating_reference_a"]
-    full = names + [f"weights_a[{j}]" for j in range(wire_operators)] + [f"weights_b[{j}]" for j in
-                                                                         range(wire_operators)]
+    full = FULL_NAMES + [f"weights_a[{j}]" for j in range(wire_operators)] + [f"weights_b[{j}]" for j in
+                                                                              range(wire_operators)]
     full += [f"output_weights[{k}]" for k in range(output_operators)]
 
     def group(name: str) -> str:
@@ -208,10 +267,12 @@ def _tie(wire_operators: int, output_operators: int, shapes: str) -> np.ndarray:
             return name.replace("_a", "_*").replace("_b", "_*")
         return name
 
-    groups = list(dict.fromkeys(group(name) for name in full))
+    fitted = [name for name in full if tension or name != "tension_coupling"]
+    groups = list(dict.fromkeys(group(name) for name in fitted))
     tie = np.zeros((len(full), len(groups)))
     for row, name in enumerate(full):
-        tie[row, groups.index(group(name))] = 1.0
+        if name in fitted:
+            tie[row, groups.index(group(name))] = 1.0
     return tie
 
 
@@ -220,12 +281,13 @@ class _Problem:
     current), residuals in units of the output's span."""
 
     def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int,
-                 output_operators: int, shapes: str = "per_wire") -> None:
+                 output_operators: int, shapes: str = "per_wire", tension: bool = False) -> None:
         self.t, self.u, self.y = t, u, y
         self.n, self.m = wire_operators, output_operators
         self.reference = float(np.max(np.abs(u)))
         self.span = float(np.ptp(y))
-        self.tie = _tie(wire_operators, output_operators, shapes)
+        self.tension = tension
+        self.tie = _tie(wire_operators, output_operators, shapes, tension)
         reference_index = SCALARS.index("heating_reference_a")  # held at self.reference, not fitted
         self._fitted = np.array([c for c in range(self.tie.shape[0] + 1) if c != reference_index])
         first = self.tie.argmax(axis=0)  # each free parameter's first place in the full vector
@@ -243,10 +305,9 @@ class _Problem:
                    "offset": (-level - span, level + span), "output_threshold": (0.0, span),
                    "resistance_drop": RESISTANCE_DROP_RANGE,
                    "tension_coupling": (0.0, TENSION_COUPLING_RANGE * reference)}
-        free = [name for name in SCALARS if name != "heating_reference_a"]
         weights = 2 * self.n + self.m
-        low = np.r_[[scalars[name][0] for name in free], np.zeros(weights)]
-        high = np.r_[[scalars[name][1] for name in free], np.full(weights, 3.0)]
+        low = np.r_[[scalars[name][0] for name in FULL_NAMES], np.zeros(weights)]
+        high = np.r_[[scalars[name][1] for name in FULL_NAMES], np.full(weights, 3.0)]
         return low, high
 
     def random_start(self, rng: np.random.Generator) -> np.ndarray:
@@ -256,9 +317,21 @@ class _Problem:
         start = np.r_[pair(2.0, 20.0), rng.uniform(-1.0, 1.0, 2) * reference / span, pair(0.3, 0.8) * reference,
                       pair(0.05, 0.2) * reference, pair(0.05, 0.3) * reference, np.full(2, span / 2.0),
                       float(np.mean(self.y)) - 0.0, rng.uniform(0.01, 0.2) * span,
-                      rng.uniform(*RESISTANCE_DROP_START), rng.uniform(*TENSION_COUPLING_START) * reference,
+                      rng.uniform(*RESISTANCE_DROP_START),
+                      rng.uniform(*TENSION_COUPLING_START) * reference if self.tension else 0.0,
                       np.full(2 * self.n, 1.0 / self.n), np.full(self.m, 1.0 / self.m)]
-        start = start[self.tie.argmax(axis=0)]
+        return self._inside(start)
+
+    def coupled_start(self, source: _Problem, free: np.ndarray) -> np.ndarray:
+        """A start for this problem from a solution `free` of `source` (the model without the tension coupling),
+        the coupling at COUPLED_START times the heating reference."""
+        full = source.tie @ free
+        full[FULL_NAMES.index("tension_coupling")] = COUPLED_START * self.reference
+        return self._inside(full)
+
+    def _inside(self, full: np.ndarray) -> np.ndarray:
+        """The free parameters of a full vector, moved just inside the bounds."""
+        start = full[self.tie.argmax(axis=0)]
         return np.clip(start, self.low + 1e-9 * (self.high - self.low), self.high - 1e-9 * (self.high - self.low))
 
     def parameters(self, free: np.ndarray) -> TwoWireParameters:
