@@ -230,11 +230,13 @@ def _solve(problem: _Problem, start: np.ndarray, evaluations: int, tolerance: fl
     """One least-squares run of the problem from a start (a job of the pool's processes); None when the run met
     values that are not finite (a start whose model overflows: scipy refuses the Jacobian)."""
     try:
-        # scipy cubes huge damping terms where its trust region is tiny: a warning no user can act on
-        with np.errstate(over="ignore"):
-            return problem.solve(start, evaluations, tolerance)
+        # scipy's step search overflows where its trust region is tiny (cubed damping terms): warnings no user can
+        # act on; a run it leaves at values that are not finite is dropped below
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            found = problem.solve(start, evaluations, tolerance)
     except (ValueError, np.linalg.LinAlgError):
         return None
+    return found if np.isfinite(found.cost) and np.all(np.isfinite(found.x)) else None
 
 
 def _finished(pending: list[Pending], what: str) -> list:
