@@ -77,7 +77,8 @@ def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: W
     """A held-current family's fit (two_wire or bouc_wen) on the identification record, begun in the pool's
     processes; its result is the fit, or raises the InputError that says why the record cannot identify it (its
     `begin()` hands the two-wire fit's last jobs, the polish, to the pool once its starts are done).
-    held_out: the validation record the two-wire fit tells its closest starts apart on (fit_two_wire)."""
+    held_out: the validation record the two-wire fit tells its closest starts apart on and judges its tension
+    coupling on (fit_two_wire)."""
     if family == "bouc_wen":
         return pool.submit(fit_bouc_wen, ident.t, ident.input, ident.output, output_unit)
     try:
