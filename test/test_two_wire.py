@@ -336,6 +336,28 @@ def test_the_tension_coupling_is_kept_only_when_the_held_out_record_passes_it(mo
     assert plain.tension == "" and plain.model.parameters.values["tension_coupling"] == 0.0 and len(verdicts) == 1
 
 
+def test_a_fit_whose_every_run_with_the_tension_coupling_fails_keeps_the_fit_without_it(monkeypatch):
+    """Runs with the coupling free that all meet values that are not finite leave it at 0 and say so; the fit
+    without it stands (a family's row is not lost to them)."""
+    import sma_stage.identify.two_wire as two_wire
+
+    t, u = excitation(600)
+    y = example_model().predict(t, u)
+    t_held, u_held = excitation(400, seed=5)
+    held_out = HeldOut(t_held, u_held, example_model().predict(t_held, u_held))
+    solve = two_wire._Problem.solve
+
+    def coupled_fails(problem, start, evaluations, tolerance=1e-8):
+        if problem.tension:
+            raise ValueError("array must not contain infs or NaNs")
+        return solve(problem, start, evaluations, tolerance)
+
+    monkeypatch.setattr(two_wire._Problem, "solve", coupled_fails)
+    found = fit_two_wire(t, u, y, starts=2, held_out=held_out)
+    assert found.tension == "tension coupling left at 0: every fit with it met values that are not finite"
+    assert found.model.parameters.values["tension_coupling"] == 0.0 and np.isfinite(found.errors.rms_pct)
+
+
 def test_a_record_heating_one_wire_only_is_refused():
     t = np.arange(0.0, 200.0, 0.2)
     u = 4.0 * np.abs(np.sin(t / 20.0))

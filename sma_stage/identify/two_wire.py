@@ -163,9 +163,10 @@ class TwoWireFitting:
         self._polishing = [self.pool.submit(_solve, self.problem, found.x, POLISH_EVALUATIONS, DEFAULT_TOLERANCE)
                            for found in leaders]
         if self._coupled_searching:
-            coupled_searched = _finished(self._coupled_searching, "start's search with the tension coupling")
+            coupled_searched = _ranked(self._coupled_searching)
             self._searched_evaluations += sum(found.nfev for found in coupled_searched)
-            starts = [found.x for found in self._leaders(coupled_searched, self.coupled_search)[0]]
+            starts = [found.x for found in self._leaders(coupled_searched, self.coupled_search)[0]
+                      ] if coupled_searched else []
             starts += [self.coupled.coupled_start(self.search, found.x) for found in leaders]
             self._coupled_polishing = [self.pool.submit(_solve, self.coupled, start, POLISH_EVALUATIONS,
                                                         DEFAULT_TOLERANCE) for start in starts]
@@ -191,14 +192,16 @@ class TwoWireFitting:
         if held_out is not None:
             best = min(_admitted(leaders), key=_held_out_error(held_out, self.problem))
         fitted, tension = self._fitted(self.problem, best), ""
-        if self._coupled_polishing:
-            coupled = _finished(self._coupled_polishing, "leader's polish with the tension coupling")
+        coupled = _ranked(self._coupled_polishing)
+        if coupled:
             evaluations += sum(found.nfev for found in coupled)
             candidate = self._fitted(self.coupled, min(_admitted(coupled), key=_held_out_error(held_out, self.coupled)))
             kept, reason = judge(candidate.bic - fitted.bic, held_out.errors(candidate.model),
                                  held_out.errors(fitted.model))
             tension = f"tension coupling {'kept' if kept else 'left at 0'}: {reason}"
             fitted = candidate if kept else fitted
+        elif held_out is not None:
+            tension = "tension coupling left at 0: every fit with it met values that are not finite"
         return replace(fitted, evaluations=evaluations, seconds=time.perf_counter() - self.started,
                        admitted=len(admitted), tension=tension)
 
@@ -241,11 +244,16 @@ def _solve(problem: _Problem, start: np.ndarray, evaluations: int, tolerance: fl
 
 def _finished(pending: list[Pending], what: str) -> list:
     """The least-squares results of the runs that finished, ranked by cost; InputError when none did."""
-    found = sorted((result for result in (job.result() for job in pending) if result is not None),
-                   key=lambda result: result.cost)
+    found = _ranked(pending)
     if not found:
         raise InputError(f"the two-wire fit failed: every {what} met values that are not finite")
     return found
+
+
+def _ranked(pending: list[Pending]) -> list:
+    """The least-squares results of the runs that finished (none may have), ranked by cost."""
+    return sorted((result for result in (job.result() for job in pending) if result is not None),
+                  key=lambda result: result.cost)
 
 
 SHAPES = ("per_wire", "shared")  # each wire its own transformation shape, or one shape for both
