@@ -3,9 +3,9 @@ squares (scipy's trust-region reflective) on the output error, from several star
 the record, the best polished on all of it. Plain arrays in, a result object out.
 
 The tension coupling (each wire's transformation shifted by the other's transformed share) is judged like a
-diagnosis's effect: with a held-out record, the leaders are polished again with it free, and it is kept when it
-lowers the BIC and the held-out RMS error by the diagnosis's first-round margins (diagnosis.judge); without
-one it stays at 0.
+diagnosis's effect: with a held-out record the starts are searched again with it free and each leader without
+it polished again from COUPLED_START, and the best of those is kept when it lowers the BIC and the held-out RMS
+error by the diagnosis's first-round margins (diagnosis.judge); without one it stays at 0.
 
 `shapes`: "shared" (the default) gives both wires one transformation shape (width, hysteresis width, weights),
 each wire keeping its own time constant, centre, coupling and stroke; "per_wire" frees them all. Per-wire shapes
@@ -70,7 +70,8 @@ class TwoWireFit:
     evaluations: int
     seconds: float
     parameter_count: int  # free parameters fitted (shared shapes count once)
-    admitted: int = 0  # starts that fitted within START_FIT_MARGIN of the best, the held-out error chose among (0: none)
+    admitted: int = 0  # starts that fitted within START_FIT_MARGIN of the best, the held-out error chose among (0: none;
+    # counted without the tension coupling)
     tension: str = ""  # why the tension coupling was kept or left at 0 ("": not judged, no held-out record)
 
 
