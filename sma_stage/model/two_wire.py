@@ -194,7 +194,8 @@ def _shares(state: np.ndarray, p: np.ndarray, n: int) -> tuple[float, float]:
 @numba.njit(cache=True, nogil=True)
 def _advance(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, step_s: float) -> float:
     """Hold `current` [A] for step_s [s] from `state` (changed in place); the output at the end."""
-    share_a, share_b = _shares(state, p, n)
+    read = p[RESISTANCE_DROP] > 0.0 or p[TENSION_COUPLING] > 0.0  # else the shares are not read
+    share_a, share_b = _shares(state, p, n) if read else (0.0, 0.0)
     return _advance_from(state, p, n, m, current, step_s, share_a, share_b)[0]
 
 
