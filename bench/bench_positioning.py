@@ -6,6 +6,11 @@ Prints one table and writes it to bench/results/positioning.md (--out), with how
 the setpoints' band on each plant (no law crosses it faster).
 
     .venv/bin/python bench/bench_positioning.py [--plants simulator,nominal,...] [--out FILE] [--seed 0]
+    .venv/bin/python bench/bench_positioning.py --reversal-speeds 1,2,3,4 [--plants ...]
+
+With --reversal-speeds, instead: the held levels in the PI loop (without and with the preview) at each value of the
+compensator's REVERSAL_SPEED (the integral's gain while a held setpoint's reversals go through the linear path), one
+table written to bench/results/reversal_speed.md (--out).
 
 Plants: the package's stage simulator; every variant of test/antagonistic_plant.py (a second physical stage the
 model code did not make: Preisach hysterons per wire, stress coupling, detwinning, a lever); and three variants
@@ -43,6 +48,7 @@ sys.path.insert(0, str(REPO / "test"))
 import antagonistic_plant as physical  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
+from sma_stage.control import compensator as compensator_module  # noqa: E402
 from sma_stage.control.compensator import imc_gains  # noqa: E402
 from sma_stage.identify.families import FAMILIES  # noqa: E402
 from sma_stage.identify.pipeline import identify_recording  # noqa: E402
@@ -310,17 +316,70 @@ def rows(name: str, identified: Identified, seed: int) -> list[str]:
     return lines
 
 
+def reversal_scan(names: list[str], seed: int, speeds: list[float]) -> list[str]:
+    """Held levels in the PI loop, without and with the preview, at each REVERSAL_SPEED: per plant and draw, the
+    settled mean / max [%] and the p99 current change [%], then the worst hold and the draws whose every hold
+    settled within 0.2 % (of all, per speed), and the mean of the draws' settled means."""
+    loops = [mode for mode in MODES if mode.feedback]
+    lines = ["| plant | setpoint | " + " | ".join(f"reversal speed {speed:g}: settled mean / max %, p99 change %: "
+                                                  + "; ".join(mode.name for mode in loops) for speed in speeds) + " |",
+             "|---|---|" + "---|" * len(speeds)]
+    print(lines[0] + "\n" + lines[1], flush=True)
+    worst, within, means = {speed: 0.0 for speed in speeds}, {speed: 0 for speed in speeds}, {speed: [] for speed in speeds}
+    draws = 0
+    held = {shape: form for shape, form in shapes(seed).items() if shape.startswith("held levels")}
+    for name in names:
+        identified = identify(name, seed)
+        for shape, form in held.items():
+            cells = []
+            for speed in speeds:
+                compensator_module.REVERSAL_SPEED = speed
+                runs = [track(identified, shape, form, mode) for mode in loops]
+                worst[speed] = max(worst[speed], *(run.settled_max_pct for run in runs))
+                within[speed] += sum(run.settled_max_pct <= 0.2 for run in runs)
+                means[speed] += [run.settled_mean_pct for run in runs]
+                cells.append("; ".join(f"{run.settled_mean_pct:.2f} / {run.settled_max_pct:.2f}, {run.change_p99_pct:.1f}"
+                                       for run in runs))
+            draws += len(loops)
+            lines.append(f"| {name} | {shape} | " + " | ".join(cells) + " |")
+            print(lines[-1], flush=True)
+    lines.append("| every plant | worst hold %; draws with every hold within 0.2 %; mean settled % | "
+                 + " | ".join(f"{worst[speed]:.2f}; {within[speed]} of {draws}; {np.mean(means[speed]):.3f}"
+                              for speed in speeds) + " |")
+    print(lines[-1], flush=True)
+    return lines
+
+
+def write(out: Path, title: str, body: str) -> None:
+    """The table written whole (a staging file renamed over `out`)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.with_suffix(".tmp")
+    staging.write_text(f"# {title}\n\n{body}")
+    staging.replace(out)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--plants", default=",".join(PLANTS), help=f"comma-separated, of {', '.join(PLANTS)}")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=str(REPO / "bench" / "results" / "positioning.md"))
+    parser.add_argument("--reversal-speeds", help="comma-separated values of REVERSAL_SPEED: the held levels only")
+    parser.add_argument("--out", help="the table's file (default bench/results/positioning.md, with --reversal-speeds "
+                                      "bench/results/reversal_speed.md)")
     args = parser.parse_args()
     names = args.plants.split(",")
     unknown = [name for name in names if name not in PLANTS]
     if unknown:
         parser.error(f"unknown plant {unknown[0]!r} (known: {', '.join(PLANTS)})")
     started = time.perf_counter()
+    if args.reversal_speeds:
+        lines = reversal_scan(names, args.seed, [float(text) for text in args.reversal_speeds.split(",")])
+        note = (f"`.venv/bin/python bench/bench_positioning.py --reversal-speeds {args.reversal_speeds} --plants "
+                f"{args.plants} --seed {args.seed}`: {time.perf_counter() - started:.0f} s on {time.strftime('%Y-%m-%d')}; "
+                "deterministic for a seed.")
+        write(Path(args.out or REPO / "bench" / "results" / "reversal_speed.md"),
+              "Held levels at each speed of a held setpoint's reversal", "\n".join(lines) + "\n\n" + note + "\n")
+        print(note)
+        return
     table = [HEADER]
     traverse = ["| plant | fastest crossing of the band up / down [s] | neutral [%] | drop, dead, stall down / up [s] "
                 "| stall floor, sine 50 / 100 / 250 s [% RMS] |", "|---|---|---|---|---|"]
@@ -339,15 +398,11 @@ def main() -> None:
     print("\n".join(traverse))
     note = (f"`.venv/bin/python bench/bench_positioning.py --plants {args.plants} --seed {args.seed}`: "
             f"{time.perf_counter() - started:.0f} s on {time.strftime('%Y-%m-%d')}; deterministic for a seed.")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.with_suffix(".tmp")
-    staging.write_text("# Positioning stages the control law was not tuned on\n\n" + "\n".join(table) + "\n\n"
-                       + "The full current's crossing of the setpoints' band (no law crosses it faster), and what a "
-                       "hand-over costs (hand_over, stall_floor_pct; drop or dead NaN: not within 60 s, no stall "
-                       "counted):\n\n"
-                       + "\n".join(traverse) + "\n\n" + note + "\n")
-    staging.replace(out)
+    write(Path(args.out or REPO / "bench" / "results" / "positioning.md"),
+          "Positioning stages the control law was not tuned on",
+          "\n".join(table) + "\n\n" + "The full current's crossing of the setpoints' band (no law crosses it faster), "
+          "and what a hand-over costs (hand_over, stall_floor_pct; drop or dead NaN: not within 60 s, no stall "
+          "counted):\n\n" + "\n".join(traverse) + "\n\n" + note + "\n")
     print(note)
 
 

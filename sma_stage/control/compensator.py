@@ -7,7 +7,8 @@ measurement is given (feedback):
     integral += ki e dt, except while the command saturates in the direction of e (anti-windup), and
                 while a held setpoint's error is one the model still expects to close: the setpoint holds and
                 is not moving (see below), and the inverse's model is further from the inverse's target than
-                the stage from the setpoint (conditional integration)
+                the stage from the setpoint (conditional integration); REVERSAL_SPEED ki e dt while a held
+                setpoint's reversal goes through the linear path (see below)
     target    = setpoint + kp e + integral                      (target = setpoint without feedback)
     target    = a play of half-width deadband_m on it: the target reverses only once it has come back by
                 more than 2 deadband_m (feedback only; measurement noise no longer reverses it)
@@ -68,6 +69,19 @@ single steps now and then, and taking over there (where the model's prediction l
 PI loop 0.34 -> 1.75 % RMS. Without the copy the inverse resumed from a state that had
 not seen the linear path's current: on the second physical stage (bench/bench_positioning.py's `nominal`) that state
 was 5 % of the stroke from the stage after a 60 s hold, and the 250 s sine that followed began 10 % of the stroke off.
+
+The linear path's slope is the model's mean one, but a held setpoint's reversal first crosses the width of the stage's
+own loop, where the current changes and the stage does not move (the heated wire cooled back through its hysteresis,
+the other heated up to where it transforms): at ki the integral took 30-50 s to carry the current across it, and a
+level reached with an overshoot was still up to 1.9 % of the stroke off after 40 s. So once the linear path has acted
+in a hold, the integral runs REVERSAL_SPEED (3) times faster, but not while the last command was saturated or held
+back by the rate limit: there a faster integral only winds up ahead of a current that cannot follow (without that
+exception a speed of 4 already limit-cycled on two plants of bench/bench_positioning.py). Its scan over the held
+levels of that bench's nine plants (`--reversal-speeds 1,2,3,4,6`, bench/results/reversal_speed.md; the PI loop with
+and without the preview, 54 draws of eight holds): the worst hold 1.92, 1.41, 0.77, 0.68 and 2.16 % of the stroke at
+speeds 1, 2, 3, 4 and 6, the mean settled error 0.127, 0.069, 0.051, 0.048 and 0.059 %; at 6 `prestrained` limit-cycles
+(its current switching wires, p99 change 5.3 % of the limit against the rate limit's 4 %). 3 rather than 4: as good
+within the scan's spread, and twice as far from the speed that cycled.
 
 A preview (`ahead_m`, the setpoint `preview_s()` from now, for a caller that knows the setpoint ahead: a
 stamped stream sent early, a planned trajectory): the lead limit leaves the stage a first-order lag of tau / g
@@ -159,6 +173,7 @@ RELAY_HOLD_S = 2.0  # the relay switches back to the other wire no sooner than t
 RESYNC_HOLD_S = 2.0  # the true model takes over after a hold of at least this long [s]
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
+REVERSAL_SPEED = 3.0  # the integral's gain, in ki, while a held setpoint's reversals go through the linear path
 LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (scan: bench/README.md at b315809)
 
 
@@ -318,6 +333,7 @@ class Compensator:
         self._commanded = False
         self._looped = False  # whether the last command ran the PI loop (had a measurement)
         self.saturated = 0
+        self._slewing = False  # whether the rate limit held the last command back
         self.command_a = self.drive.initial_current()
         self._relay_side = _wire(self.command_a)  # the wire the relay feeds: +1, -1, 0
         self._relay_held_s = RELAY_HOLD_S  # since its last switch [s]
@@ -400,7 +416,8 @@ class Compensator:
         self.target_m = setpoint
         self._looped = measured is not None
         if measured is not None:
-            self.target_m = self._pi_target(setpoint, measured, dt, held and not moving, now)
+            speed = REVERSAL_SPEED if held and self._reversing() else 1.0
+            self.target_m = self._pi_target(setpoint, measured, dt, held and not moving, now, speed)
         limit = self._lead_limit
         if measured is None:
             limit = self._feedforward_lead_limit if moving else self._feedforward_step_lead_limit
@@ -417,7 +434,9 @@ class Compensator:
         if bounded != total:
             self.saturated = 1 if total > bounded else -1
         self._linear_a = bounded - min(self._limit, max(-self._limit, current))
-        self.command_a = self._relay_held(self._rate_limited(bounded, dt, moving), dt)
+        limited = self._rate_limited(bounded, dt, moving)
+        self._slewing = limited != bounded
+        self.command_a = self._relay_held(limited, dt)
         return self.command_a
 
     def _previewed(self, now: float, ahead: float | None, dt: float) -> float:
@@ -554,14 +573,21 @@ class Compensator:
             return 0.0
         return abs(self._inverse_target - self.drive.predicted_m)
 
-    def _pi_target(self, setpoint: float, measured: float, dt: float, holding: bool, now: float) -> float:
+    def _reversing(self) -> bool:
+        """Whether a held setpoint's loop reverses through the linear path and the last command followed it: neither
+        saturated nor held back by the rate limit (see the module's docstring)."""
+        return self._true_drive is not None and not self.saturated and not self._slewing
+
+    def _pi_target(self, setpoint: float, measured: float, dt: float, holding: bool, now: float,
+                   speed: float = 1.0) -> float:
         """The loop's target [m] for setpoint [m] (the one ahead, with a preview), the error against now [m];
-        holding: the setpoint holds and has not been moving (a step, then a hold)."""
+        holding: the setpoint holds and has not been moving (a step, then a hold); speed: the integral's gain as a
+        multiple of ki."""
         error = now - measured
         if self.saturated * error <= 0.0 and not (holding and self._in_transit_m() > abs(error)):
             low, high = self.drive.target_bounds  # beyond them the integral changes no command: a bound
             reach = high - low
-            self.integral_m = min(reach, max(-reach, self.integral_m + self._ki * error * dt))
+            self.integral_m = min(reach, max(-reach, self.integral_m + speed * self._ki * error * dt))
         target = setpoint + self._kp * error + self.integral_m
         if not math.isfinite(target):
             raise InputError(f"the loop's target is not finite (setpoint {setpoint!r}, measured {measured!r})")
