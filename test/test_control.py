@@ -172,6 +172,23 @@ def test_a_held_setpoint_settles_without_a_limit_cycle(period_s):
         assert np.percentile(np.abs(np.diff(currents[last])), 99) < 0.005 * LIMIT_A
 
 
+def test_a_model_without_a_lag_holds_a_level_without_a_limit_cycle():
+    """The shipped GPI without its lag in the loop (kp 0: pure integral action) on the simulator, each level held
+    600 s: the last 200 s within 3 um peak to peak (0.2-1.9 um when written). With a held reversal's faster integral
+    (REVERSAL_SPEED) applied without proportional action, the same holds cycled 92-331 um peak to peak."""
+    gains = imc_gains(MODEL, 0.1)
+    assert gains["kp"] == 0.0
+    for level_m in (1e-4, 2e-4, 4e-4):
+        stage = StageSimulator(seed=0)
+        core = Compensator(MODEL, LIMIT_A, **gains)
+        measured, dt_s, positions = stage.state.measured_position_m, 0.0, []
+        for _ in range(6000):
+            state = stage.step(core.command(level_m, measured, dt_s), 0.1)
+            measured, dt_s = state.measured_position_m, 0.1
+            positions.append(state.position_m)
+        assert np.ptp(positions[-2000:]) < 3e-6, f"level {level_m}: {1e6 * np.ptp(positions[-2000:]):.1f} um p-p"
+
+
 @pytest.mark.parametrize("period_s", [0.1, 0.4])
 def test_a_setpoint_that_moves_after_a_hold_starts_from_where_the_stage_is(period_s):
     """The shipped model in the loop on the simulator: 100 um held 300 s (the linear path takes the loop's
