@@ -53,6 +53,7 @@ from sma_stage.control.compensator import imc_gains  # noqa: E402
 from sma_stage.identify.families import FAMILIES  # noqa: E402
 from sma_stage.identify.pipeline import identify_recording  # noqa: E402
 from sma_stage.io import make_series  # noqa: E402
+from sma_stage.io.atomic import atomic_write_text  # noqa: E402
 from sma_stage.model.kinds import AnyModel  # noqa: E402
 from sma_stage.plant import StageSimulator  # noqa: E402
 
@@ -325,37 +326,35 @@ def reversal_scan(names: list[str], seed: int, speeds: list[float]) -> list[str]
                                                   + "; ".join(mode.name for mode in loops) for speed in speeds) + " |",
              "|---|---|" + "---|" * len(speeds)]
     print(lines[0] + "\n" + lines[1], flush=True)
-    worst, within, means = {speed: 0.0 for speed in speeds}, {speed: 0 for speed in speeds}, {speed: [] for speed in speeds}
-    draws = 0
+    every: dict[float, list[Tracked]] = {speed: [] for speed in speeds}
     held = {shape: form for shape, form in shapes(seed).items() if shape.startswith("held levels")}
-    for name in names:
-        identified = identify(name, seed)
-        for shape, form in held.items():
-            cells = []
-            for speed in speeds:
-                compensator_module.REVERSAL_SPEED = speed
-                runs = [track(identified, shape, form, mode) for mode in loops]
-                worst[speed] = max(worst[speed], *(run.settled_max_pct for run in runs))
-                within[speed] += sum(run.settled_max_pct <= 0.2 for run in runs)
-                means[speed] += [run.settled_mean_pct for run in runs]
-                cells.append("; ".join(f"{run.settled_mean_pct:.2f} / {run.settled_max_pct:.2f}, {run.change_p99_pct:.1f}"
-                                       for run in runs))
-            draws += len(loops)
-            lines.append(f"| {name} | {shape} | " + " | ".join(cells) + " |")
-            print(lines[-1], flush=True)
-    lines.append("| every plant | worst hold %; draws with every hold within 0.2 %; mean settled % | "
-                 + " | ".join(f"{worst[speed]:.2f}; {within[speed]} of {draws}; {np.mean(means[speed]):.3f}"
-                              for speed in speeds) + " |")
+    default_speed = compensator_module.REVERSAL_SPEED
+    try:
+        for name in names:
+            identified = identify(name, seed)
+            for shape, form in held.items():
+                cells = []
+                for speed in speeds:
+                    compensator_module.REVERSAL_SPEED = speed
+                    runs = [track(identified, shape, form, mode) for mode in loops]
+                    every[speed] += runs
+                    cells.append("; ".join(f"{run.settled_mean_pct:.2f} / {run.settled_max_pct:.2f}, "
+                                           f"{run.change_p99_pct:.1f}" for run in runs))
+                lines.append(f"| {name} | {shape} | " + " | ".join(cells) + " |")
+                print(lines[-1], flush=True)
+    finally:
+        compensator_module.REVERSAL_SPEED = default_speed
+    lines.append("| every plant | worst hold %; draws with every hold within 0.2 %; mean settled % | " + " | ".join(
+        f"{max(run.settled_max_pct for run in runs):.2f}; {sum(run.settled_max_pct <= 0.2 for run in runs)} of "
+        f"{len(runs)}; {np.mean([run.settled_mean_pct for run in runs]):.3f}" for runs in every.values()) + " |")
     print(lines[-1], flush=True)
     return lines
 
 
 def write(out: Path, title: str, body: str) -> None:
-    """The table written whole (a staging file renamed over `out`)."""
+    """The table written whole (atomic_write_text: a reader sees the old file or the new one)."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.with_suffix(".tmp")
-    staging.write_text(f"# {title}\n\n{body}")
-    staging.replace(out)
+    atomic_write_text(out, f"# {title}\n\n{body}")
 
 
 def main() -> None:
