@@ -2,6 +2,8 @@
 sample at a time, the model file, and identification on the second physical stage (test/antagonistic_plant.py),
 which the model's code did not make."""
 
+import copy
+
 import numpy as np
 import pytest
 from antagonistic_plant import VARIANTS, records, third_record
@@ -12,7 +14,7 @@ from sma_stage.identify.fit import fit_gpi, predict
 from sma_stage.identify.metrics import error_metrics
 from sma_stage.identify.two_wire import HeldOut, TwoWireFitting, fit_two_wire
 from sma_stage.identify.workers import Workers
-from sma_stage.model.two_wire import TwoWireModel, TwoWireParameters
+from sma_stage.model.two_wire import KEEP_TOLERANCE, TwoWireModel, TwoWireParameters
 
 SPAN_M = 6e-4
 
@@ -103,18 +105,26 @@ def test_a_slow_wire_holds_in_at_most_so_many_sub_steps():
     assert abs(model.stream().step(4.0, 3000.0) - end) <= 0.01 * span
 
 
+def keep_band(model: TwoWireModel) -> float:
+    """How near a target [m] the last command may leave the output (KEEP_TOLERANCE of the strokes and offset)."""
+    values = model.parameters.values
+    return KEEP_TOLERANCE * (abs(values["stroke_a"]) + abs(values["stroke_b"]) + abs(values["offset"]))
+
+
 def test_the_exact_inverse_round_trips_reachable_targets():
-    """Targets the model reached under some current: the inverse finds a current that reaches each to 1e-9 of
-    the span, one sample at a time."""
+    """Targets the model reached under some current: the inverse, one sample at a time, reaches each within the band
+    its last command may stay in (KEEP_TOLERANCE of the strokes, 0.02 % of this record's span), but with a command at
+    the current limit (the band's lag can leave a steep target beyond it)."""
     model, (t, u) = example_model(), excitation(800)
     targets = model.predict(t, u)
-    span = float(np.ptp(targets))
     stream = model.stream(max_current_a=5.0)
-    reached = [stream.output]
+    reached, commands = [stream.output], [0.0]
     for target, step in zip(targets[1:], np.diff(t), strict=True):
-        stream.command_for(target, step)
+        commands.append(stream.command_for(target, step))
         reached.append(stream.output)
-    assert np.max(np.abs(np.array(reached) - targets)) <= 1e-9 * span
+    at_the_limit = np.abs(commands) == 5.0
+    misses = np.abs(np.array(reached) - targets)[~at_the_limit]
+    assert np.max(misses) <= 1.000001 * keep_band(model)
 
 
 def test_an_unreachable_target_gets_the_current_limit():
@@ -124,20 +134,46 @@ def test_an_unreachable_target_gets_the_current_limit():
 
 
 def test_the_inverse_from_the_last_command_answers_as_the_search_over_the_whole_range():
-    """current_for seeks its bracket from its last answer first; the answer is the one found from the range's ends
-    (a fresh stream: no last answer), near the last one, far from it and beyond reach either way."""
+    """current_for seeks its bracket from its last answer first; the answer is the one found from the range's ends (a
+    fresh stream: no last answer) for the near edge of the band the last answer may stay in (the target moved
+    KEEP_TOLERANCE of the strokes towards where the last answer leaves the output), near the last one, far from it
+    and beyond reach either way."""
     model, (t, u) = example_model(), excitation(800)
     outputs, state = model.run(t[:400], u[:400])
     low, high = float(np.min(outputs)), float(np.max(outputs))
     stream = model.stream(state, max_current_a=5.0)
-    stream.current_for(0.5 * (low + high), 0.2)
+    last = stream.current_for(0.5 * (low + high), 0.2)
     for target in (0.5 * (low + high) + 1e-3 * (high - low), low + 0.1 * (high - low), high - 0.05 * (high - low),
                    high + 10.0 * (high - low), 0.5 * (low + high), low - 10.0 * (high - low)):
+        left_at = model.stream(state, max_current_a=5.0).step(last, 0.2)
         fresh = model.stream(state, max_current_a=5.0)
-        expected = fresh.current_for(target, 0.2)
-        assert stream.current_for(target, 0.2) == pytest.approx(expected, abs=1e-9)
+        expected = fresh.current_for(target + np.sign(left_at - target) * keep_band(model), 0.2)
+        last = stream.current_for(target, 0.2)
+        assert last == pytest.approx(expected, abs=1e-9)
         assert stream.last_clipped == fresh.last_clipped
     assert stream.last_clipped == -1  # the last target is beyond reach below
+
+
+def test_the_inverse_keeps_its_last_current_for_a_target_a_hair_off_where_the_output_is_flat():
+    """Wire a heated, then cooled back to 1 A through its hysteresis: held 1 s, 0.5 A more moves the output 10 nm. A
+    target 30 nm above, within the band of KEEP_TOLERANCE of the strokes (76 nm), keeps the last current, where the
+    exact answer was 2.05 A (1.07 A for 1 nm); 300 nm above, the answer brings the output to the band's near edge."""
+    params = example_model().parameters
+    model = TwoWireModel(TwoWireParameters({**params.values, "width_a": 0.48, "width_b": 0.48, "hysteresis_a": 0.9,
+                                            "hysteresis_b": 0.9}, params.weights_a, params.weights_b,
+                                           params.output_weights))
+    stream = model.stream(max_current_a=5.0)
+    stream.step(5.0, 60.0)
+    output = stream.step(1.0, 120.0)
+    assert copy.deepcopy(stream).step(1.5, 1.0) - output < 2e-8  # flat above 1 A
+    holding = stream.current_for(output, 1.0)
+    assert holding == pytest.approx(1.0, abs=1e-6)
+    for off_m in (1e-9, -1e-9, 3e-8, -3e-8):
+        assert stream.current_for(output + off_m, 1.0) == holding
+    stream.current_for(output, 1.0)
+    current = stream.current_for(output + 3e-7, 1.0)
+    reached = copy.deepcopy(stream).step(current, 1.0)
+    assert reached == pytest.approx(output + 3e-7 - keep_band(model), abs=1e-12)
 
 
 def test_the_model_file_round_trips(tmp_path):
@@ -502,8 +538,8 @@ def test_the_two_wire_inverse_tracks_the_second_stage_in_feedforward(nominal_sta
 
 def test_the_compensator_runs_a_two_wire_model_through_its_exact_inverse():
     """With no lead limit and no rate limit, the package's compensator sends the currents that bring the model
-    to each target at the end of its hold, to 1e-9 of the span: the two-wire model goes through the same
-    control core as the GPI."""
+    to each target at the end of its hold, within the band its last command may stay in (KEEP_TOLERANCE of the
+    strokes, 0.02 % of the span): the two-wire model goes through the same control core as the GPI."""
     from sma_stage.control.compensator import Compensator
 
     model, (t, u) = example_model(), excitation(600)
@@ -515,7 +551,7 @@ def test_the_compensator_runs_a_two_wire_model_through_its_exact_inverse():
         dt = t[k] - t[k - 1] if k else 0.0
         commands.append(core.command(targets[k + 1], dt_s=dt, hold_s=t[k + 1] - t[k]))
     reached = model.predict(t, np.r_[commands, 0.0])
-    assert np.max(np.abs(reached - targets)) <= 1e-9 * np.ptp(targets)
+    assert np.max(np.abs(reached - targets)) <= 1.000001 * keep_band(model)
     assert core.tau_s == 4.0 and "two-wire" in core.drive.describe()
 
 

@@ -19,7 +19,8 @@ two wires' transformations pull together. Per wire w (a: heated by u > 0, b: by 
 
 Sampling: y[k] is the position measured at t[k]; the current u[k] is applied from t[k] to t[k+1] (held, as a
 sampled drive and a compensator's command are). So y[k] depends on u[0..k-1] and the state before the record,
-and the exact inverse is the current that, held over the next period, brings the output to the target. A hold
+and the exact inverse is the current that, held over the next period, brings the output to the target (from the
+last command, to KEEP_TOLERANCE of the strokes: see _command_for). A hold
 longer than FIRST_SUBSTEP_S (a compensator's lead horizon, the reach) is taken in sub-steps, as if sampled: in one
 step the position's pull on each wire and the heating's fall would stay where the hold began.
 """
@@ -54,6 +55,8 @@ HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hyste
           "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
 INVERSE_ITERATIONS = 100  # at most this many trial steps per inverse call (a few are the rule)
 OUTPUT_TOLERANCE = 1e-13  # a trial within this fraction of the strokes and offset of the target ends the search
+KEEP_TOLERANCE = 1e-4  # the last command is kept while it brings the output within this fraction of them of the
+# target; beyond, the search aims at the near edge of that band
 CURRENT_TOLERANCE = 1e-14  # a bracket narrower than this (relative) ends it
 GUESS_FIRST_STEP = 1e-3  # the bracket is sought from the last command first in steps of this fraction of the range ..
 GUESS_GROWTH = 8.0  # .. each this many times the one before
@@ -336,14 +339,21 @@ def _command_for(state: np.ndarray, p: np.ndarray, n: int, m: int, target: float
     (regula falsi, Illinois variant, bisecting when a step would leave the bracket); the range's end when the
     target is out of reach. guess (NaN: none), the last command, is where the bracket is sought first: steps
     from it growing by GUESS_GROWTH until the output crosses the target, a few trials where the target moved
-    little since, in place of the range's ends."""
+    little since, in place of the range's ends. The guess is kept while it brings the output within KEEP_TOLERANCE of
+    the strokes of the target, and beyond that the search aims at the near edge of that band: where the output is
+    flat in the current (a wire cooled back through its hysteresis, the other not yet transforming) the answer to a
+    target a few nanometres off is amperes away, and a held level fell 4 % of the stroke after such a jump (see
+    sma_stage.control.compensator's docstring)."""
     share_a, share_b = _shares(state, p, n)
-    close = OUTPUT_TOLERANCE * (abs(p[11]) + abs(p[12]) + abs(p[13]) + 1e-300)
+    scale = abs(p[11]) + abs(p[12]) + abs(p[13]) + 1e-300
+    close = OUTPUT_TOLERANCE * scale
     lowest, highest = low, high
     if low < guess < high:
         above = _held(state, p, n, m, guess, step_s, target, trial, share_a, share_b)
-        if abs(above) <= close:
+        keep = KEEP_TOLERANCE * scale
+        if abs(above) <= keep:
             return guess, 0
+        target, above = (target + keep, above - keep) if above > 0.0 else (target - keep, above + keep)
         rising = above < 0.0  # the answer lies above the guess
         end = high if rising else low
         width = GUESS_FIRST_STEP * (high - low)
