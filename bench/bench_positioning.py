@@ -351,6 +351,12 @@ def reversal_scan(names: list[str], seed: int, speeds: list[float]) -> list[str]
     return lines
 
 
+def run_note(arguments: str, started: float) -> str:
+    """The line under a table: the command with its arguments, the seconds since `started` and the date."""
+    return (f"`.venv/bin/python bench/bench_positioning.py {arguments}`: {time.perf_counter() - started:.0f} s on "
+            f"{time.strftime('%Y-%m-%d')}; deterministic for a seed.")
+
+
 def write(out: Path, title: str, body: str) -> None:
     """The table written whole (atomic_write_text: a reader sees the old file or the new one)."""
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -372,9 +378,7 @@ def main() -> None:
     started = time.perf_counter()
     if args.reversal_speeds:
         lines = reversal_scan(names, args.seed, [float(text) for text in args.reversal_speeds.split(",")])
-        note = (f"`.venv/bin/python bench/bench_positioning.py --reversal-speeds {args.reversal_speeds} --plants "
-                f"{args.plants} --seed {args.seed}`: {time.perf_counter() - started:.0f} s on {time.strftime('%Y-%m-%d')}; "
-                "deterministic for a seed.")
+        note = run_note(f"--reversal-speeds {args.reversal_speeds} --plants {args.plants} --seed {args.seed}", started)
         write(Path(args.out or REPO / "bench" / "results" / "reversal_speed.md"),
               "Held levels at each speed of a held setpoint's reversal", "\n".join(lines) + "\n\n" + note + "\n")
         print(note)
@@ -395,8 +399,7 @@ def main() -> None:
         floors = " / ".join(f"{stall_floor_pct(period, found):.2f}" for period in (50.0, 100.0, 250.0))
         traverse.append(f"| {name} | {up:.1f} / {down:.1f} | {found['neutral_pct']:.1f} | {stalls} | {floors} |")
     print("\n".join(traverse))
-    note = (f"`.venv/bin/python bench/bench_positioning.py --plants {args.plants} --seed {args.seed}`: "
-            f"{time.perf_counter() - started:.0f} s on {time.strftime('%Y-%m-%d')}; deterministic for a seed.")
+    note = run_note(f"--plants {args.plants} --seed {args.seed}", started)
     write(Path(args.out or REPO / "bench" / "results" / "positioning.md"),
           "Positioning stages the control law was not tuned on",
           "\n".join(table) + "\n\n" + "The full current's crossing of the setpoints' band (no law crosses it faster), "

@@ -20,7 +20,7 @@ from sma_stage.errors import InputError
 from sma_stage.model import Effect, GPIForwardStream, GPIInverseStream, IdentifiedModel, load_model_file
 from sma_stage.model.effects import EffectState, lag_step
 from sma_stage.model.kinds import load_any_model_file
-from sma_stage.model.two_wire import TwoWireModel, TwoWireParameters
+from sma_stage.model.two_wire import TwoWireModel
 from sma_stage.nodes.launch import DEFAULT_MODEL_FILE
 from sma_stage.plant import StageSimulator
 
@@ -235,9 +235,7 @@ def test_a_held_levels_reversal_across_a_wider_loop_than_the_models_settles(monk
     goes through the linear path, whose mean slope asks too little current of a loop the stage crosses without
     moving; with the integral REVERSAL_SPEED (3) times faster there, every hold settles within 0.03 % of the reach
     (measured when written: 0.009 and 0.018 % at worst); at the plain ki one hold was still 0.12 and 0.08 % off."""
-    params = example_two_wire().parameters
-    stage = TwoWireModel(TwoWireParameters({**params.values, **wider}, params.weights_a, params.weights_b,
-                                           params.output_weights))
+    stage = example_two_wire(**wider)
     assert np.max(held_levels_settled(stage)) < 3e-4
     monkeypatch.setattr(compensator_module, "REVERSAL_SPEED", 1.0)
     assert np.max(held_levels_settled(stage)) > 6e-4
@@ -507,9 +505,7 @@ def test_the_current_changes_by_at_most_the_rate_limit_per_step():
 
 def wires_moving_beyond(centre: float) -> TwoWireModel:
     """A two-wire model whose wires move the stage only when heated beyond `centre` (heating units)."""
-    params = example_two_wire().parameters
-    values = {**params.values, "centre_a": centre, "centre_b": centre}
-    return TwoWireModel(TwoWireParameters(values, params.weights_a, params.weights_b, params.output_weights))
+    return example_two_wire(centre_a=centre, centre_b=centre)
 
 
 def test_the_dead_band_is_where_no_wire_moves_the_stage_in_the_model():

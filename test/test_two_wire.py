@@ -19,12 +19,13 @@ from sma_stage.model.two_wire import KEEP_TOLERANCE, TwoWireModel, TwoWireParame
 SPAN_M = 6e-4
 
 
-def example_model(wire_operators: int = 3, output_operators: int = 3) -> TwoWireModel:
-    """A model with the magnitudes identification finds on the antagonistic stage (output in m)."""
+def example_model(wire_operators: int = 3, output_operators: int = 3, **changes: float) -> TwoWireModel:
+    """A model with the magnitudes identification finds on the antagonistic stage (output in m); `changes` replace
+    some of its scalar parameters."""
     values = {"tau_a_s": 4.0, "tau_b_s": 3.5, "heating_reference_a": 5.0, "coupling_a": 3800.0,
               "coupling_b": 4000.0, "centre_a": 1.6, "centre_b": 1.7, "width_a": 1.2, "width_b": 1.1,
               "hysteresis_a": 0.6, "hysteresis_b": 0.9, "stroke_a": 4e-4, "stroke_b": 3.5e-4, "offset": 1e-5,
-              "output_threshold": 8e-5, "resistance_drop": 0.3, "tension_coupling": 0.4}
+              "output_threshold": 8e-5, "resistance_drop": 0.3, "tension_coupling": 0.4, **changes}
     return TwoWireModel(TwoWireParameters(values, tuple(np.linspace(0.1, 0.5, wire_operators)),
                                           tuple(np.linspace(0.4, 0.2, wire_operators)),
                                           tuple(np.linspace(0.7, 0.1, output_operators))))
@@ -95,9 +96,7 @@ def test_a_hold_of_no_finite_length_ends():
 def test_a_slow_wire_holds_in_at_most_so_many_sub_steps():
     """A wire of 500 s (the fit's bound) settles over 1500 s, taken in 30 sub-steps of 50 s (not 1500 of 1 s, a
     cost per inverse trial): the hold still ends within 1 % of the span of where 1 s steps take it."""
-    values = {**example_model().parameters.values, "tau_a_s": 500.0, "tau_b_s": 450.0}
-    params = example_model().parameters
-    model = TwoWireModel(TwoWireParameters(values, params.weights_a, params.weights_b, params.output_weights))
+    model = example_model(tau_a_s=500.0, tau_b_s=450.0)
     span = model.stream().step(5.0, 2e4) - model.stream().step(-5.0, 2e4)
     sampled = model.stream()
     for _ in range(3000):
@@ -158,10 +157,7 @@ def test_the_inverse_keeps_its_last_current_for_a_target_a_hair_off_where_the_ou
     """Wire a heated, then cooled back to 1 A through its hysteresis: held 1 s, 0.5 A more moves the output 10 nm. A
     target 30 nm above, within the band of KEEP_TOLERANCE of the strokes (76 nm), keeps the last current, where the
     exact answer was 2.05 A (1.07 A for 1 nm); 300 nm above, the answer brings the output to the band's near edge."""
-    params = example_model().parameters
-    model = TwoWireModel(TwoWireParameters({**params.values, "width_a": 0.48, "width_b": 0.48, "hysteresis_a": 0.9,
-                                            "hysteresis_b": 0.9}, params.weights_a, params.weights_b,
-                                           params.output_weights))
+    model = example_model(width_a=0.48, width_b=0.48, hysteresis_a=0.9, hysteresis_b=0.9)
     stream = model.stream(max_current_a=5.0)
     stream.step(5.0, 60.0)
     output = stream.step(1.0, 120.0)
