@@ -91,10 +91,8 @@ command, and where a two-wire model's output is flat in the current (the heated 
 hysteresis, the other not yet transforming) an output a few nanometres off that target asked for amperes: on
 bench/bench_positioning.py's `slow_wires` (seed 1, draw 2) the rate limit held back 0.04 A of the inverse's share,
 its model ended 3 nm above the target, the share went from -1.1 to -3.6 A in 2 s and the stage fell 4 % of the
-stroke (that hold settled 1.36 % off). The two-wire inverse now keeps its last current within KEEP_TOLERANCE
-(sma_stage.model.two_wire). The held levels at speed 3 on three seeds (`--seed N --reversal-speeds 3`, 54 draws
-each): the worst hold 0.77, 1.36, 0.94 -> 0.76, 1.07, 0.81 % of the stroke; draws with every hold within 0.2 %
-41, 33, 28 -> 44, 35, 36; mean settled 0.051, 0.074, 0.070 -> 0.049, 0.067, 0.060 %.
+stroke (that hold settled 1.36 % off). So the two-wire inverse keeps its last current within KEEP_TOLERANCE
+(sma_stage.model.two_wire); what that does to the held levels of three seeds: bench/README.md, positioning.
 
 A preview (`ahead_m`, the setpoint `preview_s()` from now, for a caller that knows the setpoint ahead: a
 stamped stream sent early, a planned trajectory): the lead limit leaves the stage a first-order lag of tau / g
