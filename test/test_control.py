@@ -559,6 +559,37 @@ def test_while_the_setpoint_moves_the_rate_limit_holds_within_the_band_but_at_th
     assert np.any(steady & (np.abs(after) < high)), "the band was crossed at the rate limit, not skipped"
 
 
+def beyond_band_after_switches(feedback: bool, period_s: float) -> np.ndarray:
+    """A triangle over 80 % of the reach (period_s a way) at 1 A/s, every 0.1 s, the stage the model itself: how far
+    [A] beyond the dead band each switch of the relay puts the new wire's current (negative: within the band)."""
+    model = wires_moving_beyond(3.0)
+    low, high = dead_band_a(model, LIMIT_A)
+    core = Compensator(model, LIMIT_A, max_rate_a_per_s=1.0, **(imc_gains(model, 0.1) if feedback else {}))
+    bottom, top = core.drive.target_bounds
+    t = 0.1 * np.arange(round(4 * period_s / 0.1))
+    setpoints = (bottom + top) / 2 + 0.4 * reach_span_m(core.drive) * (2.0 * np.abs((t / period_s) % 2.0 - 1.0) - 1.0)
+    stage = copy.deepcopy(core.drive)
+    currents = []
+    for k, setpoint in enumerate(setpoints):
+        currents.append(core.command(setpoint, stage.predicted_m if feedback else None, 0.1 if k else 0.0))
+        stage.advance(currents[-1], 0.1)
+    currents = np.array(currents)
+    after = currents[1:][np.sign(currents[:-1]) * np.sign(currents[1:]) < 0]
+    return np.where(after > 0.0, after - high, low - after)
+
+
+def test_in_the_loop_a_moving_setpoints_hand_over_takes_the_new_wire_beyond_the_band_at_once(monkeypatch):
+    """At a switch of the relay while the setpoint moves (4 % of the reach per RELAY_HOLD_S), the loop takes the new
+    wire's current beyond the dead band by more than the rate limit's step and at most by what the rate limit adds
+    over the relay's hold; feedforward, and the loop on a setpoint slower than HANDOVER_SPEED_FRACTION of the reach per
+    hold, by one step of the rate limit at most."""
+    looped = beyond_band_after_switches(True, 40.0)
+    assert looped.size >= 3 and 0.5 < np.max(looped) <= 1.0 * RELAY_HOLD_S + 1e-9
+    assert np.max(beyond_band_after_switches(False, 40.0)) <= 0.1 + 1e-9
+    monkeypatch.setattr(compensator_module, "HANDOVER_SPEED_FRACTION", 0.05)
+    assert np.max(beyond_band_after_switches(True, 40.0)) <= 0.1 + 1e-9
+
+
 @pytest.mark.parametrize("hold_s", [0.0, RELAY_HOLD_S])
 def test_the_relay_switches_back_no_sooner_than_its_hold(monkeypatch, hold_s):
     """A target flipping between the ends of the reach every 0.1 s: the current's sign (the wire the relay feeds)

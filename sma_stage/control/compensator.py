@@ -30,6 +30,14 @@ well, and only the relay's switch crosses it at once: before a hand-over the wan
 (on `nominal`'s 100 s sine 22 of 2000 steps changed by more than the rate limit, each a jump the stage does not
 need). A held or stepped setpoint's current still moves freely within the band: the linear path that settles a
 held level near the hand-over needs it (rate-limited there, one of `nominal`'s holds settled 2.96 % off).
+In the loop, while the setpoint moves at least HANDOVER_SPEED_FRACTION (1 %) of the model's reach span per
+RELAY_HOLD_S, the relay's switch takes the new wire up to max_rate_a_per_s * RELAY_HOLD_S (2 A at the default) beyond
+the band at once, then the rate limit again: at 1 A/s the new wire's current otherwise climbs through currents that
+barely move it, the stage stalls past the setpoint and then snaps beyond it (`hot_alloy`'s 100 s sine: 2.2 % RMS in
+the 5 % of the period around each hand-over, 0.5 % elsewhere). The jump is what the rate limit would have added over
+the relay's hold; the speed guard keeps it from a setpoint wandering about the hand-over, where a jump at each
+crossing made the relay cycle (`fast_wires`' paper's shape: 20 -> 62 switches). Figures over three seeds:
+bench/README.md, positioning.
 
 Why the play, the lead limit and the rate limit: the exact inverse of a hysteretic model jumps across
 the loop's width at every reversal of its target, and the exact lead multiplies a change of v* by
@@ -181,6 +189,7 @@ DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT = 1.0  # feedforward, after a step and while
 MOTION_WINDOW_S = 1.0  # a moving setpoint's change is compared over two windows this long [s]
 MOVING_RATE_RATIO = 2.0  # and agrees within this factor
 RELAY_HOLD_S = 2.0  # the relay switches back to the other wire no sooner than this after a switch [s]
+HANDOVER_SPEED_FRACTION = 0.01  # the loop's jump at a hand-over needs the setpoint to move this much of the reach per RELAY_HOLD_S
 RESYNC_HOLD_S = 2.0  # the true model takes over after a hold of at least this long [s]
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
@@ -272,6 +281,12 @@ class _SetpointMotion:
         ratio = (setpoint - middle) / before if before != 0.0 else math.nan
         return 1.0 / MOVING_RATE_RATIO <= ratio <= MOVING_RATE_RATIO  # False for NaN
 
+    def speed_m_per_s(self) -> float:
+        """How fast [m/s] the setpoint moved over the last MOTION_WINDOW_S (0 before it has that much history)."""
+        if not self.times_s or self.times_s[0] > self.now_s - MOTION_WINDOW_S:
+            return 0.0
+        return abs(self.values[-1] - self._at(self.now_s - MOTION_WINDOW_S)) / MOTION_WINDOW_S
+
     def _at(self, time_s: float) -> float:
         return self.values[bisect.bisect_right(self.times_s, time_s) - 1]
 
@@ -353,7 +368,8 @@ class Compensator:
         self._ahead_m: float | None = None  # the last setpoint ahead given [m]
         self._ahead_held_s = 0.0  # how long it has held [s]
         self._previewing = True
-        self._amps_per_m = 2.0 * self._limit / reach_span_m(self.drive)
+        self._reach_span_m = reach_span_m(self.drive)
+        self._amps_per_m = 2.0 * self._limit / self._reach_span_m
         self._release_inverse()
 
     def _release_inverse(self) -> None:
@@ -528,7 +544,8 @@ class Compensator:
     def _rate_limited(self, current: float, dt: float, moving: bool) -> float:
         """The current moved from the previous command by at most max_rate_a_per_s * dt (dt 0: not at all) beyond
         the dead band, the band itself crossed at once; while the setpoint moves, within the band too but where the
-        relay switches to the other wire; except for the first command after a reset. See the module's docstring."""
+        relay switches to the other wire, and further at a decisive hand-over in the loop (`_decisive_handover`);
+        except for the first command after a reset. See the module's docstring."""
         first, self._commanded = not self._commanded, True
         rate = self._max_rate_a_per_s
         if rate == 0.0 or first:
@@ -537,10 +554,21 @@ class Compensator:
             return _within(current, self.command_a, rate * dt)
         wanted, previous = self._beyond_band(current), self._beyond_band(self.command_a)
         allowed = _within(wanted, previous, rate * dt)
+        if allowed != wanted and self._decisive_handover(current, dt, moving):
+            allowed = _within(wanted, 0.0, rate * RELAY_HOLD_S)
         if allowed == wanted:
             return current
         low, high = self._dead_band
         return high + allowed if allowed > 0.0 or (allowed == 0.0 and wanted > 0.0) else low + allowed
+
+    def _decisive_handover(self, current: float, dt: float, moving: bool) -> bool:
+        """Whether this command switches the relay to the other wire in the loop while the setpoint moves at least
+        HANDOVER_SPEED_FRACTION of the reach span per RELAY_HOLD_S (see the module's docstring)."""
+        side = _wire(current)
+        low, high = self._dead_band
+        return (self._looped and moving and dt > 0.0 and low < high and side != 0 and side != _wire(self.command_a)
+                and side != self._relay_side and self._relay_held_s + dt >= RELAY_HOLD_S
+                and self._setpoint.speed_m_per_s() * RELAY_HOLD_S >= HANDOVER_SPEED_FRACTION * self._reach_span_m)
 
     def _relay_held(self, current: float, dt: float) -> float:
         """The current [A]; but within RELAY_HOLD_S [s] of the relay's last switch (a change of the current's sign:
