@@ -559,10 +559,9 @@ def test_while_the_setpoint_moves_the_rate_limit_holds_within_the_band_but_at_th
     assert np.any(steady & (np.abs(after) < high)), "the band was crossed at the rate limit, not skipped"
 
 
-def beyond_band_after_switches(feedback: bool, period_s: float) -> np.ndarray:
+def beyond_band_after_switches(model: TwoWireModel, feedback: bool, period_s: float) -> np.ndarray:
     """A triangle over 80 % of the reach (period_s a way) at 1 A/s, every 0.1 s, the stage the model itself: how far
     [A] beyond the dead band each switch of the relay puts the new wire's current (negative: within the band)."""
-    model = wires_moving_beyond(3.0)
     low, high = dead_band_a(model, LIMIT_A)
     core = Compensator(model, LIMIT_A, max_rate_a_per_s=1.0, **(imc_gains(model, 0.1) if feedback else {}))
     bottom, top = core.drive.target_bounds
@@ -578,16 +577,17 @@ def beyond_band_after_switches(feedback: bool, period_s: float) -> np.ndarray:
     return np.where(after > 0.0, after - high, low - after)
 
 
-def test_in_the_loop_a_moving_setpoints_hand_over_takes_the_new_wire_beyond_the_band_at_once(monkeypatch):
+@pytest.mark.parametrize("model", [wires_moving_beyond(3.0), example_two_wire()], ids=["dead band", "none"])
+def test_in_the_loop_a_moving_setpoints_hand_over_takes_the_new_wire_beyond_the_band_at_once(monkeypatch, model):
     """At a switch of the relay while the setpoint moves (4 % of the reach per RELAY_HOLD_S), the loop takes the new
-    wire's current beyond the dead band by more than the rate limit's step and at most by what the rate limit adds
-    over the relay's hold; feedforward, and the loop on a setpoint slower than HANDOVER_SPEED_FRACTION of the reach per
-    hold, by one step of the rate limit at most."""
-    looped = beyond_band_after_switches(True, 40.0)
+    wire's current beyond the dead band (beyond 0 A without one) by more than the rate limit's step and at most by
+    what the rate limit adds over the relay's hold; feedforward, and the loop on a setpoint slower than
+    HANDOVER_SPEED_FRACTION of the reach per hold, by one step of the rate limit at most."""
+    looped = beyond_band_after_switches(model, True, 40.0)
     assert looped.size >= 3 and 0.5 < np.max(looped) <= 1.0 * RELAY_HOLD_S + 1e-9
-    assert np.max(beyond_band_after_switches(False, 40.0)) <= 0.1 + 1e-9
+    assert np.max(beyond_band_after_switches(model, False, 40.0)) <= 0.1 + 1e-9
     monkeypatch.setattr(compensator_module, "HANDOVER_SPEED_FRACTION", 0.05)
-    assert np.max(beyond_band_after_switches(True, 40.0)) <= 0.1 + 1e-9
+    assert np.max(beyond_band_after_switches(model, True, 40.0)) <= 0.1 + 1e-9
 
 
 @pytest.mark.parametrize("hold_s", [0.0, RELAY_HOLD_S])

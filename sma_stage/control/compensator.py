@@ -32,9 +32,9 @@ need). A held or stepped setpoint's current still moves freely within the band: 
 held level near the hand-over needs it (rate-limited there, one of `nominal`'s holds settled 2.96 % off).
 In the loop, while the setpoint moves at least HANDOVER_SPEED_FRACTION (1 %) of the model's reach span per
 RELAY_HOLD_S, the relay's switch takes the new wire up to max_rate_a_per_s * RELAY_HOLD_S (2 A at the default) beyond
-the band at once, then the rate limit again: at 1 A/s the new wire's current otherwise climbs through currents that
-barely move it, the stage stalls past the setpoint and then snaps beyond it (`hot_alloy`'s 100 s sine: 2.2 % RMS in
-the 5 % of the period around each hand-over, 0.5 % elsewhere). The jump is what the rate limit would have added over
+the band (beyond 0 A for a model without one) at once, then the rate limit again: at 1 A/s the new wire's current
+otherwise climbs through currents that barely move it, the stage stalls past the setpoint and then snaps beyond it
+(`hot_alloy`'s 100 s sine: 2.2 % RMS in the 5 % of the period around each hand-over, 0.5 % elsewhere). The jump is what the rate limit would have added over
 the relay's hold; the speed guard keeps it from a setpoint wandering about the hand-over, where a jump at each
 crossing made the relay cycle (`fast_wires`' paper's shape: 20 -> 62 switches). Figures over three seeds:
 bench/README.md, positioning.
@@ -565,8 +565,7 @@ class Compensator:
         """Whether this command switches the relay to the other wire in the loop while the setpoint moves at least
         HANDOVER_SPEED_FRACTION of the reach span per RELAY_HOLD_S (see the module's docstring)."""
         side = _wire(current)
-        low, high = self._dead_band
-        return (self._looped and moving and dt > 0.0 and low < high and side != 0 and side != _wire(self.command_a)
+        return (self._looped and moving and dt > 0.0 and side != 0 and side != _wire(self.command_a)
                 and side != self._relay_side and self._relay_held_s + dt >= RELAY_HOLD_S
                 and self._setpoint.speed_m_per_s() * RELAY_HOLD_S >= HANDOVER_SPEED_FRACTION * self._reach_span_m)
 
