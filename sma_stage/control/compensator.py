@@ -31,13 +31,13 @@ well, and only the relay's switch crosses it at once: before a hand-over the wan
 need). A held or stepped setpoint's current still moves freely within the band: the linear path that settles a
 held level near the hand-over needs it (rate-limited there, one of `nominal`'s holds settled 2.96 % off).
 In the loop, while the setpoint moves at least HANDOVER_SPEED_FRACTION (1 %) of the model's reach span per
-RELAY_HOLD_S, the relay's switch takes the new wire up to max_rate_a_per_s * RELAY_HOLD_S (2 A at the default) beyond
-the band (beyond 0 A for a model without one) at once, then the rate limit again: at 1 A/s the new wire's current
-otherwise climbs through currents that barely move it, the stage stalls past the setpoint and then snaps beyond it
-(`hot_alloy`'s 100 s sine: 2.2 % RMS in the 5 % of the period around each hand-over, 0.5 % elsewhere). The jump is what the rate limit would have added over
-the relay's hold; the speed guard keeps it from a setpoint wandering about the hand-over, where a jump at each
-crossing made the relay cycle (`fast_wires`' paper's shape: 20 -> 62 switches). Figures over three seeds:
-bench/README.md, positioning.
+RELAY_HOLD_S, the relay's switch takes the new wire up to max_rate_a_per_s * RELAY_HOLD_S (2 A at the default)
+beyond the band (beyond 0 A for a model without one) at once, then the rate limit again: at 1 A/s the new wire's
+current otherwise climbs through currents that barely move it, the stage stalls past the setpoint and then snaps
+beyond it (`hot_alloy`'s 100 s sine: 2.2 % RMS in the 5 % of the period around each hand-over, 0.5 % elsewhere).
+The jump is what the rate limit would have added over the relay's hold; the speed guard keeps it from a setpoint
+wandering about the hand-over, where a jump at each crossing made the relay cycle (`fast_wires`' paper's shape:
+20 -> 62 switches). Figures over three seeds: bench/README.md, positioning.
 
 Why the play, the lead limit and the rate limit: the exact inverse of a hysteretic model jumps across
 the loop's width at every reversal of its target, and the exact lead multiplies a change of v* by
@@ -189,7 +189,7 @@ DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT = 1.0  # feedforward, after a step and while
 MOTION_WINDOW_S = 1.0  # a moving setpoint's change is compared over two windows this long [s]
 MOVING_RATE_RATIO = 2.0  # and agrees within this factor
 RELAY_HOLD_S = 2.0  # the relay switches back to the other wire no sooner than this after a switch [s]
-HANDOVER_SPEED_FRACTION = 0.01  # the loop's jump at a hand-over needs the setpoint to move this much of the reach per RELAY_HOLD_S
+HANDOVER_SPEED_FRACTION = 0.01  # the hand-over's jump needs a setpoint moving this much of the reach per RELAY_HOLD_S
 RESYNC_HOLD_S = 2.0  # the true model takes over after a hold of at least this long [s]
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
