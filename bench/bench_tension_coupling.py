@@ -1,0 +1,84 @@
+"""How the two-wire model's tension coupling (k, the hot wire holding the heated one back at a hand-over) sits
+between the record it was fitted on and the other validation shapes. Per variant of test/antagonistic_plant.py: the
+model identified from the paper's decaying sine as bench_experiment.py does (every family, validated on the paper's
+validation record), then, with k scaled and every other parameter as fitted, its RMS on the identification record
+itself and its RMS / max on the three validation shapes of bench_experiment.py (% of each record's span). A k the
+record's own fit prefers and the other shapes do not says the model lacks what the shapes see at the hand-overs.
+Prints one table and writes it to bench/results/tension_coupling.md.
+
+    .venv/bin/python bench/bench_tension_coupling.py [--variants nominal,...] [--scales 0,1,2,3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "test"))
+sys.path.insert(0, str(REPO / "bench"))
+
+import antagonistic_plant as physical  # noqa: E402
+from bench_experiment import PERIOD_S, RECORD_S, validation_records  # noqa: E402
+from record_results import recorded  # noqa: E402
+
+from sma_stage.identify.families import FAMILIES  # noqa: E402
+from sma_stage.identify.metrics import error_metrics  # noqa: E402
+from sma_stage.identify.pipeline import identify_recording  # noqa: E402
+from sma_stage.io import make_series  # noqa: E402
+from sma_stage.model.two_wire import TwoWireModel  # noqa: E402
+
+UNFITTED_K_A = 0.3  # the k scaled where the fit left it at 0 [A of heating per full transformation]
+
+
+def scan(variant: str, scales: list[float], noise_seed: int) -> list[str]:
+    """The table's rows of one variant: one per scale of k."""
+    stage = physical.VARIANTS[variant]
+    shapes = validation_records(stage, noise_seed)
+    t = np.arange(0.0, RECORD_S, PERIOD_S)
+    current = physical.paper_identification(t)
+    position = physical.simulate(current, stage, noise_seed)
+    found = identify_recording(make_series(t, current, position, "identification"),
+                               make_series(*shapes["paper"], "validation"), diagnose_rounds=4, workers=2,
+                               families=FAMILIES)
+    model = found.model.without_state()
+    if not isinstance(model, TwoWireModel):
+        return [f"| {variant} | {type(model).__name__} chosen: no tension coupling |" + " |" * (2 + len(shapes))]
+    fitted = model.parameters.values["tension_coupling"]
+    lines = []
+    for scale in scales:
+        values = {**model.parameters.values, "tension_coupling": (fitted or UNFITTED_K_A) * scale}
+        scaled = replace(model, parameters=replace(model.parameters, values=values))
+        own = error_metrics(position, scaled.predict(t, current)).rms_pct
+        cells = []
+        for shape_t, shape_u, shape_y in shapes.values():
+            metrics = error_metrics(shape_y, scaled.predict(shape_t, shape_u))
+            cells.append(f"{metrics.rms_pct:.2f} / {metrics.max_pct:.1f}")
+        lines.append(f"| {variant} | {fitted:.3f} | {scale:g} ({values['tension_coupling']:.3f}) | {own:.3f} | "
+                     + " | ".join(cells) + " |")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--variants", default=",".join(physical.VARIANTS))
+    parser.add_argument("--scales", default="0,0.5,1,1.5,2,3", help="multiples of the fitted k (of 0.3 A if 0)")
+    parser.add_argument("--noise-seed", type=int, default=0)
+    args = parser.parse_args()
+    scales = [float(text) for text in args.scales.split(",")]
+    names = list(physical.VALIDATION_SHAPES)
+    print("| variant | fitted k [A] | scale (k [A]) | identification record RMS % | "
+          + " | ".join(f"{name} RMS / max %" for name in names) + " |")
+    print("|---" * (4 + len(names)) + "|")
+    for variant in args.variants.split(","):
+        for line in scan(variant, scales, args.noise_seed):
+            print(line, flush=True)
+
+
+if __name__ == "__main__":
+    with recorded(__file__):
+        main()
