@@ -66,19 +66,29 @@ def designed_record(stage: physical.Stage, seed: int, design_seed: int) -> tuple
         f"{band.start_a:.1f}-{band.end_a:.1f} A" if band.moves else "none" for band in found.wires)
 
 
-def identified_errors(record: tuple, validation: tuple, shapes: dict, families: tuple[str, ...],
-                      rounds: int) -> tuple[str, dict[str, tuple[float, float]]]:
-    """The chosen model's description and its (RMS %, max %) on every validation shape."""
+def identified_model(record: tuple, validation: tuple, families: tuple[str, ...], rounds: int) -> tuple[str, object]:
+    """The model `gpi_tool diagnose` chooses for record (t, current, position), validated on validation: its
+    description and the model, without the record's state (run from rest)."""
     found = identify_recording(make_series(*record, "identification"), make_series(*validation, "validation"),
                                diagnose_rounds=rounds, workers=2, families=families)
     rows = [row for row in found.report.get("families") or [] if row["chosen"]]
-    described = rows[0]["model"] if rows else "GPI"
-    model = found.model.without_state()
+    return (rows[0]["model"] if rows else "GPI"), found.model.without_state()
+
+
+def shape_errors(model: object, shapes: dict) -> dict[str, tuple[float, float]]:
+    """The model's (RMS %, max %) on every validation shape (t, current, position)."""
     errors = {}
     for name, (t, u, y) in shapes.items():
         metrics = error_metrics(y, model.predict(t, u))
         errors[name] = (metrics.rms_pct, metrics.max_pct)
-    return described, errors
+    return errors
+
+
+def identified_errors(record: tuple, validation: tuple, shapes: dict, families: tuple[str, ...],
+                      rounds: int) -> tuple[str, dict[str, tuple[float, float]]]:
+    """The chosen model's description and its (RMS %, max %) on every validation shape."""
+    described, model = identified_model(record, validation, families, rounds)
+    return described, shape_errors(model, shapes)
 
 
 def held_band(stage: physical.Stage, edge: float = 0.05) -> tuple[float, float]:

@@ -23,15 +23,13 @@ sys.path.insert(0, str(REPO / "test"))
 sys.path.insert(0, str(REPO / "bench"))
 
 import antagonistic_plant as physical  # noqa: E402
-from bench_experiment import PERIOD_S, RECORD_S, validation_records  # noqa: E402
+from bench_experiment import PERIOD_S, RECORD_S, identified_model, shape_errors, validation_records  # noqa: E402
 from record_results import recorded  # noqa: E402
 
 from sma_stage.identify.families import FAMILIES  # noqa: E402
-from sma_stage.identify.metrics import error_metrics  # noqa: E402
-from sma_stage.identify.pipeline import identify_recording  # noqa: E402
-from sma_stage.io import make_series  # noqa: E402
 from sma_stage.model.two_wire import TwoWireModel  # noqa: E402
 
+DIAGNOSE_ROUNDS = 4  # as bench_experiment.py's default
 UNFITTED_K_A = 0.3  # the k scaled where the fit left it at 0 [A of heating per full transformation]
 
 
@@ -42,10 +40,7 @@ def scan(variant: str, scales: list[float], noise_seed: int) -> list[str]:
     t = np.arange(0.0, RECORD_S, PERIOD_S)
     current = physical.paper_identification(t)
     position = physical.simulate(current, stage, noise_seed)
-    found = identify_recording(make_series(t, current, position, "identification"),
-                               make_series(*shapes["paper"], "validation"), diagnose_rounds=4, workers=2,
-                               families=FAMILIES)
-    model = found.model.without_state()
+    _, model = identified_model((t, current, position), shapes["paper"], FAMILIES, DIAGNOSE_ROUNDS)
     if not isinstance(model, TwoWireModel):
         return [f"| {variant} | {type(model).__name__} chosen: no tension coupling |" + " |" * (2 + len(shapes))]
     fitted = model.parameters.values["tension_coupling"]
@@ -53,11 +48,8 @@ def scan(variant: str, scales: list[float], noise_seed: int) -> list[str]:
     for scale in scales:
         values = {**model.parameters.values, "tension_coupling": (fitted or UNFITTED_K_A) * scale}
         scaled = replace(model, parameters=replace(model.parameters, values=values))
-        own = error_metrics(position, scaled.predict(t, current)).rms_pct
-        cells = []
-        for shape_t, shape_u, shape_y in shapes.values():
-            metrics = error_metrics(shape_y, scaled.predict(shape_t, shape_u))
-            cells.append(f"{metrics.rms_pct:.2f} / {metrics.max_pct:.1f}")
+        own, _ = shape_errors(scaled, {"identification": (t, current, position)})["identification"]
+        cells = [f"{rms:.2f} / {top:.1f}" for rms, top in shape_errors(scaled, shapes).values()]
         lines.append(f"| {variant} | {fitted:.3f} | {scale:g} ({values['tension_coupling']:.3f}) | {own:.3f} | "
                      + " | ".join(cells) + " |")
     return lines
@@ -69,7 +61,13 @@ def main() -> None:
     parser.add_argument("--scales", default="0,0.5,1,1.5,2,3", help="multiples of the fitted k (of 0.3 A if 0)")
     parser.add_argument("--noise-seed", type=int, default=0)
     args = parser.parse_args()
-    scales = [float(text) for text in args.scales.split(",")]
+    unknown = [name for name in args.variants.split(",") if name not in physical.VARIANTS]
+    if unknown:
+        parser.error(f"unknown variant {unknown[0]!r} (known: {', '.join(physical.VARIANTS)})")
+    try:
+        scales = [float(text) for text in args.scales.split(",")]
+    except ValueError:
+        parser.error(f"--scales must be comma-separated numbers, got {args.scales!r}")
     names = list(physical.VALIDATION_SHAPES)
     print("| variant | fitted k [A] | scale (k [A]) | identification record RMS % | "
           + " | ".join(f"{name} RMS / max %" for name in names) + " |")

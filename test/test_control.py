@@ -539,17 +539,7 @@ def test_while_the_setpoint_moves_the_rate_limit_holds_within_the_band_but_at_th
     included; only a switch of the relay crosses the band in one step."""
     model = wires_moving_beyond(3.0)
     low, high = dead_band_a(model, LIMIT_A)
-    core = Compensator(model, LIMIT_A, max_rate_a_per_s=1.0, **(imc_gains(model, 0.1) if feedback else {}))
-    bottom, top = core.drive.target_bounds
-    centre, half = (bottom + top) / 2, 0.4 * reach_span_m(core.drive)
-    t = 0.1 * np.arange(1600)
-    setpoints = centre + half * (2.0 * np.abs((t / 40.0) % 2.0 - 1.0) - 1.0)
-    stage = copy.deepcopy(core.drive)
-    currents = []
-    for k, setpoint in enumerate(setpoints):
-        currents.append(core.command(setpoint, stage.predicted_m if feedback else None, 0.1 if k else 0.0))
-        stage.advance(currents[-1], 0.1)
-    currents = np.array(currents)
+    t, currents = triangle_currents(model, feedback, 40.0)
     change, after = np.abs(np.diff(currents)), currents[1:]
     switch = np.sign(currents[:-1]) * np.sign(after) < 0
     turning = np.abs((t[1:] + 20.0) % 40.0 - 20.0) > 17.0
@@ -559,10 +549,9 @@ def test_while_the_setpoint_moves_the_rate_limit_holds_within_the_band_but_at_th
     assert np.any(steady & (np.abs(after) < high)), "the band was crossed at the rate limit, not skipped"
 
 
-def beyond_band_after_switches(model: TwoWireModel, feedback: bool, period_s: float) -> np.ndarray:
-    """A triangle over 80 % of the reach (period_s a way) at 1 A/s, every 0.1 s, the stage the model itself: how far
-    [A] beyond the dead band each switch of the relay puts the new wire's current (negative: within the band)."""
-    low, high = dead_band_a(model, LIMIT_A)
+def triangle_currents(model: TwoWireModel, feedback: bool, period_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle over 80 % of the reach (period_s a way, two periods) at 1 A/s, commanded every 0.1 s, the stage the
+    model itself: the times [s] and the currents [A] commanded."""
     core = Compensator(model, LIMIT_A, max_rate_a_per_s=1.0, **(imc_gains(model, 0.1) if feedback else {}))
     bottom, top = core.drive.target_bounds
     t = 0.1 * np.arange(round(4 * period_s / 0.1))
@@ -572,7 +561,14 @@ def beyond_band_after_switches(model: TwoWireModel, feedback: bool, period_s: fl
     for k, setpoint in enumerate(setpoints):
         currents.append(core.command(setpoint, stage.predicted_m if feedback else None, 0.1 if k else 0.0))
         stage.advance(currents[-1], 0.1)
-    currents = np.array(currents)
+    return t, np.array(currents)
+
+
+def beyond_band_after_switches(model: TwoWireModel, feedback: bool, period_s: float) -> np.ndarray:
+    """How far [A] beyond the dead band each switch of the relay puts the new wire's current on triangle_currents'
+    triangle (negative: within the band)."""
+    low, high = dead_band_a(model, LIMIT_A)
+    _, currents = triangle_currents(model, feedback, period_s)
     after = currents[1:][np.sign(currents[:-1]) * np.sign(currents[1:]) < 0]
     return np.where(after > 0.0, after - high, low - after)
 
