@@ -7,7 +7,12 @@ the setpoints' band on each plant (no law crosses it faster) and, over the plant
 and how many plants are within issue 49's targets.
 
     .venv/bin/python bench/bench_positioning.py [--plants simulator,nominal,...] [--out FILE] [--seed 0]
+        [--record paper|designed]
     .venv/bin/python bench/bench_positioning.py --reversal-speeds 1,2,3,4 [--plants ...]
+
+With --record designed, each plant is identified instead from what `gpi_tool excitation probe` and `designed --probe`
+would run on it (a 100 s probe, then the design from it drawn with the seed; 1000 s in all), the setpoints still
+over 70 % of the stroke the paper's record reached (bench/results/positioning_designed.md).
 
 With --reversal-speeds, instead: the held levels in the PI loop (without and with the preview) at each value of the
 compensator's REVERSAL_SPEED (the integral's gain while a held setpoint's reversals go through the linear path), one
@@ -51,6 +56,8 @@ import antagonistic_plant as physical  # noqa: E402
 from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.control import compensator as compensator_module  # noqa: E402
 from sma_stage.control.compensator import imc_gains  # noqa: E402
+from sma_stage.experiment.design import designed_signal  # noqa: E402
+from sma_stage.experiment.probe import analyse_probe, probe_signal  # noqa: E402
 from sma_stage.identify.families import FAMILIES  # noqa: E402
 from sma_stage.identify.pipeline import identify_recording  # noqa: E402
 from sma_stage.io import make_series  # noqa: E402
@@ -60,6 +67,8 @@ from sma_stage.plant import StageSimulator  # noqa: E402
 
 PERIOD_S = 0.2
 RECORD_S = 1000.0
+PROBE_S = 100.0  # of the designed record, as bench_experiment.py's
+RECORDS = ("paper", "designed")
 MAX_CURRENT_A = 5.0
 STROKE_FRACTION = 0.7
 LEAD_IN_S = 60.0
@@ -135,23 +144,41 @@ class Identified:
     seconds: float
 
 
-def identify(name: str, seed: int) -> Identified:
-    """Run the plant through the paper's identification record and identify it (every family, 4 rounds, as
-    `gpi_tool diagnose` does); the validation record runs on a fresh plant of the same kind."""
+def identify(name: str, seed: int, record: str = "paper") -> Identified:
+    """Run the plant through its identification record and identify it (every family, 4 rounds, as `gpi_tool
+    diagnose` does); the validation record (the paper's) runs on a fresh plant of the same kind. record: "paper"
+    (the paper's decaying sine) or "designed" (designed_run). The stroke is what the paper's record reached in
+    either case, so that both records' tables track the same setpoints."""
     started = time.perf_counter()
     t = PERIOD_S * np.arange(int(RECORD_S / PERIOD_S))
     plant = make_plant(name, seed)
-    y_ident = plant.record(physical.paper_identification(t))
+    current = physical.paper_identification(t)
+    paper_y = y_ident = plant.record(current)
+    if record == "designed":
+        plant = make_plant(name, seed)
+        current, y_ident = designed_run(plant, seed)
     y_valid = make_plant(name, seed + 1).record(physical.paper_validation(t))
-    found = identify_recording(make_series(t, physical.paper_identification(t), y_ident, "identification"),
+    found = identify_recording(make_series(t, current, y_ident, "identification"),
                                make_series(t, physical.paper_validation(t), y_valid, "validation"),
                                diagnose_rounds=4, workers=2, families=FAMILIES)
     rows = found.report.get("families") or []
     chosen = [row for row in rows if row["chosen"]]
     valid = chosen[0]["validation"]["rms_pct"] if chosen else found.report["validation"]["rms_pct"]
     described = chosen[0]["model"] if chosen else "gpi"
-    return Identified(plant, found.model, described, valid, (float(y_ident.min()), float(y_ident.max())),
+    return Identified(plant, found.model, described, valid, (float(paper_y.min()), float(paper_y.max())),
                       time.perf_counter() - started)
+
+
+def designed_run(plant: SimulatorPlant | PhysicalPlant, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The excitation `gpi_tool excitation probe` and then `designed --probe` would give this plant, run on it
+    whole (RECORD_S, the first PROBE_S the probe, the design drawn with `seed`): (current [A], position [m])."""
+    t_probe = PERIOD_S * np.arange(int(PROBE_S / PERIOD_S))
+    probe_current = probe_signal(t_probe, MAX_CURRENT_A, PROBE_S)
+    probe_y = plant.record(probe_current)
+    found = analyse_probe(t_probe, probe_current, probe_y)
+    t_design = PERIOD_S * np.arange(int((RECORD_S - PROBE_S) / PERIOD_S))
+    design_current = designed_signal(t_design, found, RECORD_S - PROBE_S, seed)
+    return np.r_[probe_current, design_current], np.r_[probe_y, plant.record(design_current)]
 
 
 def shapes(seed: int) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
@@ -406,6 +433,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--plants", default=",".join(PLANTS), help=f"comma-separated, of {', '.join(PLANTS)}")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--record", choices=RECORDS, default="paper",
+                        help="the identification record: the paper's decaying sine, or the probe and the designed "
+                             "excitation (default out bench/results/positioning_designed.md)")
     parser.add_argument("--reversal-speeds", help="comma-separated values of REVERSAL_SPEED: the held levels only")
     parser.add_argument("--out", help="the table's file (default bench/results/positioning.md, with --reversal-speeds "
                                       "bench/results/reversal_speed.md)")
@@ -428,7 +458,7 @@ def main() -> None:
     print(HEADER, flush=True)
     tracked: dict[str, dict[str, list[Tracked]]] = {}
     for name in names:
-        identified = identify(name, args.seed)
+        identified = identify(name, args.seed, args.record)
         for line in rows(name, identified, args.seed, tracked.setdefault(name, {})):
             table.append(line)
             print(line, flush=True)
@@ -441,9 +471,11 @@ def main() -> None:
     print("\n".join(traverse))
     against = summary(tracked)
     print("\n".join(against))
-    note = run_note(f"--plants {args.plants} --seed {args.seed}", started)
-    write(Path(args.out or REPO / "bench" / "results" / "positioning.md"),
-          "Positioning stages the control law was not tuned on",
+    note = run_note(f"--plants {args.plants} --seed {args.seed} --record {args.record}", started)
+    designed = args.record == "designed"
+    write(Path(args.out or REPO / "bench" / "results" / ("positioning_designed.md" if designed else "positioning.md")),
+          "Positioning stages the control law was not tuned on"
+          + (", each identified from the probe and the designed excitation" if designed else ""),
           "\n".join(table) + "\n\nOver the plants: the RMS range [% of the stroke] and the plants within issue 49's "
           "targets (RMS within 1 % with the PI loop, 3 % in feedforward; held levels: every hold settled within "
           "0.2 %):\n\n" + "\n".join(against) + "\n\n" + "The full current's crossing of the setpoints' band (no law crosses it faster), "
