@@ -6,9 +6,12 @@ validated on the paper's validation record), then the chosen model run from rest
 on its own settled stage: the paper's validation signal, held random levels (60 s each) and a sine sweep (period
 200 s down to 20 s). First, what the probe finds on each variant beside the plant's own figures: one wire's
 m c / (h A), and the currents where 60 s holds from rest move the stage 5 % and 95 % of the way (wire a).
-Prints the tables and writes them to bench/results/experiment.md.
+Prints the tables and writes them to bench/results/experiment.md. With --choose-on-levels each record is also
+validated on held random levels of another draw than the scored one, and the family and the effects chosen on the
+record each predicts worst (`diagnose --validate A --validate B`); written to bench/results/experiment_levels.md.
 
     .venv/bin/python bench/bench_experiment.py [--variants nominal,...] [--seeds 0,1,2,3,4] [--families ...]
+        [--choose-on-levels]
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ PERIOD_S = physical.SAMPLE_PERIOD_S
 RECORD_S = 1000.0
 PROBE_S = 100.0
 LIMIT_A = 5.0
+CHOICE_LEVELS_DRAW = 5
 
 
 def validation_records(stage: physical.Stage, seed: int) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -49,6 +53,14 @@ def validation_records(stage: physical.Stage, seed: int) -> dict[str, tuple[np.n
         current = shape(t, seed) if name == "random_levels" else shape(t)
         found[name] = (t, current, physical.simulate(current, stage, seed + 20 + number))
     return found
+
+
+def choice_levels(stage: physical.Stage, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Held random levels of another draw than the scored shape's (CHOICE_LEVELS_DRAW), from their own settled
+    stage: a second record to choose on (--choose-on-levels)."""
+    t = np.arange(0.0, RECORD_S, PERIOD_S)
+    current = physical.random_levels(t, CHOICE_LEVELS_DRAW)
+    return t, current, physical.simulate(current, stage, seed + 10 * CHOICE_LEVELS_DRAW + 5)
 
 
 def designed_record(stage: physical.Stage, seed: int, design_seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
@@ -66,11 +78,14 @@ def designed_record(stage: physical.Stage, seed: int, design_seed: int) -> tuple
         f"{band.start_a:.1f}-{band.end_a:.1f} A" if band.moves else "none" for band in found.wires)
 
 
-def identified_model(record: tuple, validation: tuple, families: tuple[str, ...], rounds: int) -> tuple[str, object]:
-    """The model `gpi_tool diagnose` chooses for record (t, current, position), validated on validation: its
-    description and the model, without the record's state (run from rest)."""
+def identified_model(record: tuple, validation: tuple, families: tuple[str, ...], rounds: int,
+                     more: tuple[tuple, ...] = ()) -> tuple[str, object]:
+    """The model `gpi_tool diagnose` chooses for record (t, current, position), validated on validation (and on
+    each of `more`, chosen on the worst, as `--validate A --validate B` does): its description and the model,
+    without the record's state (run from rest)."""
     found = identify_recording(make_series(*record, "identification"), make_series(*validation, "validation"),
-                               diagnose_rounds=rounds, workers=2, families=families)
+                               diagnose_rounds=rounds, workers=2, families=families,
+                               more_validation=[make_series(*extra, "more") for extra in more])
     rows = [row for row in found.report.get("families") or [] if row["chosen"]]
     return (rows[0]["model"] if rows else "GPI"), found.model.without_state()
 
@@ -85,9 +100,9 @@ def shape_errors(model: object, shapes: dict) -> dict[str, tuple[float, float]]:
 
 
 def identified_errors(record: tuple, validation: tuple, shapes: dict, families: tuple[str, ...],
-                      rounds: int) -> tuple[str, dict[str, tuple[float, float]]]:
+                      rounds: int, more: tuple[tuple, ...] = ()) -> tuple[str, dict[str, tuple[float, float]]]:
     """The chosen model's description and its (RMS %, max %) on every validation shape."""
-    described, model = identified_model(record, validation, families, rounds)
+    described, model = identified_model(record, validation, families, rounds, more)
     return described, shape_errors(model, shapes)
 
 
@@ -127,6 +142,8 @@ def main() -> None:
     parser.add_argument("--families", default=",".join(FAMILIES))
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--noise-seed", type=int, default=0)
+    parser.add_argument("--choose-on-levels", action="store_true",
+                        help="validate on held random levels of another draw too, the choice on the worst")
     args = parser.parse_args()
     families = tuple(args.families.split(","))
     seeds = [int(seed) for seed in args.seeds.split(",")]
@@ -145,9 +162,10 @@ def main() -> None:
         for seed in seeds:
             *record, probed = designed_record(stage, args.noise_seed, seed)
             runs.append(("designed", str(seed), tuple(record), probed))
+        more = (choice_levels(stage, args.noise_seed),) if args.choose_on_levels else ()
         for kind, seed, record, probed in runs:
             started = time.perf_counter()
-            described, errors = identified_errors(record, shapes["paper"], shapes, families, args.rounds)
+            described, errors = identified_errors(record, shapes["paper"], shapes, families, args.rounds, more)
             moving, parts = moving_parts(record[2])
             worst = max(rms for rms, _ in errors.values())
             summary.append((variant, kind, worst, max(top for _, top in errors.values())))
@@ -165,5 +183,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    with recorded(__file__):
+    with recorded(__file__, "experiment_levels" if "--choose-on-levels" in sys.argv[1:] else None):
         main()

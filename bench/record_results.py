@@ -29,15 +29,15 @@ class _Tee(io.TextIOBase):
         self.terminal.flush()
 
 
-def results_path(script: str) -> Path:
-    """bench/results/<script's name without bench_>.md."""
-    return RESULTS / f"{Path(script).stem.removeprefix('bench_')}.md"
+def results_path(script: str, name: str | None = None) -> Path:
+    """bench/results/<name>.md, by default the script's name without bench_."""
+    return RESULTS / f"{name or Path(script).stem.removeprefix('bench_')}.md"
 
 
 @contextmanager
-def recorded(script: str) -> Iterator[None]:
-    """Within the block, stdout also goes to results_path(script), written when the block ends without an error
-    (a SystemExit with status 0 or None counts as without)."""
+def recorded(script: str, name: str | None = None) -> Iterator[None]:
+    """Within the block, stdout also goes to results_path(script, name), written when the block ends without an
+    error (a SystemExit with status 0 or None counts as without)."""
     tee, terminal = _Tee(sys.stdout), sys.stdout
     sys.stdout = tee
     started = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
@@ -46,16 +46,16 @@ def recorded(script: str) -> Iterator[None]:
     except SystemExit as leaving:
         if leaving.code not in (None, 0):
             raise
-        _write(script, started, tee.copy.getvalue())
+        _write(script, name, started, tee.copy.getvalue())
         raise
     else:
-        _write(script, started, tee.copy.getvalue())
+        _write(script, name, started, tee.copy.getvalue())
     finally:
         sys.stdout = terminal
 
 
-def _write(script: str, started: str, output: str) -> None:
-    path = results_path(script)
+def _write(script: str, name: str | None, started: str, output: str) -> None:
+    path = results_path(script, name)
     command = " ".join([".venv/bin/python", f"bench/{Path(script).name}", *sys.argv[1:]])
     text = f"# {Path(script).name}\n\n`{command}` ({started}, {os.cpu_count()} CPUs)\n\n```\n{output.rstrip()}\n```\n"
     path.parent.mkdir(exist_ok=True)

@@ -368,6 +368,58 @@ def test_the_tension_coupling_is_kept_only_when_the_held_out_record_passes_it(mo
     assert plain.tension == "" and plain.model.parameters.values["tension_coupling"] == 0.0 and len(verdicts) == 1
 
 
+def test_the_tension_coupling_is_judged_on_the_held_out_record_predicted_worst(monkeypatch):
+    """With further held-out records (HeldOut.others, each from rest) the coupling is judged, as the diagnosis
+    judges an effect, on the record each fit predicts worst: here a record whose output is 1.3 times the stage's,
+    which no fit predicts within the first record's error."""
+    import sma_stage.identify.two_wire as two_wire
+
+    t, u = excitation(600)
+    y = example_model().predict(t, u)
+    t_held, u_held = excitation(400, seed=5)
+    first = (t_held, u_held, example_model().predict(t_held, u_held))
+    t_other, u_other = excitation(300, seed=6)
+    other = (t_other, u_other, 1.3 * example_model().predict(t_other, u_other))
+    verdicts = []
+
+    def rule(delta_bic, validation, before):
+        verdicts.append((validation, before))
+        return True, "the rule's reason"
+
+    monkeypatch.setattr(two_wire, "judge", rule)
+    found = fit_two_wire(t, u, y, starts=2, held_out=HeldOut(*first, others=(other,)))
+    (coupled, _), = verdicts
+    model = found.model.without_state()
+    on_other = error_metrics(other[2], model.predict(other[0], other[1]))
+    assert coupled.rms_pct == pytest.approx(on_other.rms_pct) and coupled.max_pct == pytest.approx(on_other.max_pct)
+    assert coupled.rms_pct > 2.0 * HeldOut(*first).rms_pct(model)
+
+
+def test_identification_judges_the_two_wire_fit_on_every_validation_record(monkeypatch):
+    """identify_recording's further validation records reach the two-wire fit's held-out records (after the
+    first), thinned as the others are."""
+    from sma_stage.identify import pipeline
+    from sma_stage.io import make_series
+
+    given = []
+
+    def captured(family, ident, output_unit, pool, held_out=None):
+        given.append((family, held_out))
+        return pipeline.Pending(lambda: (_ for _ in ()).throw(InputError("not fitted here")))
+
+    monkeypatch.setattr(pipeline, "start_held_current_fit", captured)
+    t, u = excitation(500)
+    records = [make_series(t, u, example_model().predict(t, u), name) for name in ("identification", "validation")]
+    t_more, u_more = excitation(300, seed=7)
+    more = make_series(t_more, u_more, example_model().predict(t_more, u_more), "more")
+    pipeline.identify_recording(records[0], records[1], diagnose_rounds=0, families=("gpi", "two_wire"),
+                                more_validation=[more])
+    (family, held_out), = given
+    assert family == "two_wire" and len(held_out.others) == 1
+    np.testing.assert_array_equal(held_out.others[0][0], more.t)
+    np.testing.assert_array_equal(held_out.others[0][2], more.output)
+
+
 def test_a_fit_whose_every_run_with_the_tension_coupling_fails_keeps_the_fit_without_it(monkeypatch):
     """Runs with the coupling free that all meet values that are not finite leave it at 0 and say so; the fit
     without it stands (a family's row is not lost to them)."""

@@ -109,7 +109,8 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
     more = tuple(series.thinned(block) for series in more)
     ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
     compared = families != ("gpi",) and valid is not None and float(np.ptp(valid.output[scored_from:])) > 0.0
-    held_out = HeldOut(valid.t, valid.input, valid.output, scored_from) if compared else None
+    held_out = HeldOut(valid.t, valid.input, valid.output, scored_from,
+                       tuple((series.t, series.input, series.output) for series in more)) if compared else None
     held = {family: start_held_current_fit(family, ident, output_unit, pool, held_out)
             for family in HELD_CURRENT_FAMILIES if compared and family in families}  # beside the GPI's fit
     with one_blas_thread():

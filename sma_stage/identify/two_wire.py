@@ -5,7 +5,8 @@ the record, the best polished on all of it. Plain arrays in, a result object out
 The tension coupling (each wire's transformation shifted by the other's transformed share) is judged like a
 diagnosis's effect: with a held-out record the starts are searched again with it free and each leader without
 it polished again from COUPLED_START, and the best of those is kept when it lowers the BIC and the held-out RMS
-error by the diagnosis's first-round margins (diagnosis.judge); without one it stays at 0.
+error by the diagnosis's first-round margins (diagnosis.judge), on the held-out record it predicts worst where
+there are several (HeldOut.others); without one it stays at 0.
 
 `shapes`: "shared" (the default) gives both wires one transformation shape (width, hysteresis width, weights),
 each wire keeping its own time constant, centre, coupling and stroke; "per_wire" frees them all. Per-wire shapes
@@ -90,20 +91,24 @@ def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: in
 
 @dataclass(frozen=True)
 class HeldOut:
-    """A record to choose between fits on: times [s], input [A], output [output unit], run from a stage at rest,
-    its errors counted from sample `scored_from`."""
+    """Records to choose between fits on: times [s], input [A], output [output unit], run from a stage at rest,
+    its errors counted from sample `scored_from`; `others`, further (t, u, y) records scored whole, each from rest.
+    A fit is scored on the record it predicts worst, as the diagnosis judges an effect (chain.Validation)."""
 
     t: np.ndarray
     u: np.ndarray
     y: np.ndarray
     scored_from: int = 0
+    others: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...] = ()
 
     def errors(self, model: TwoWireModel) -> ErrorMetrics:
-        """The model's errors on the scored samples."""
-        return error_metrics(self.y[self.scored_from:], model.predict(self.t, self.u)[self.scored_from:])
+        """The model's errors on the record it predicts worst (the largest RMS % of the record's span)."""
+        errors = [error_metrics(self.y[self.scored_from:], model.predict(self.t, self.u)[self.scored_from:])]
+        errors += [error_metrics(y, model.predict(t, u)) for t, u, y in self.others]
+        return max(errors, key=lambda metrics: metrics.rms_pct)
 
     def rms_pct(self, model: TwoWireModel) -> float:
-        """The model's RMS error on the scored samples [% of their span]."""
+        """The model's RMS error on the record it predicts worst [% of its span]."""
         return self.errors(model).rms_pct
 
 
