@@ -26,6 +26,20 @@ def paper_validation_signal(t: np.ndarray, scale: float = 1.0) -> np.ndarray:
     return scale * (2.5 * np.cos(0.01 * np.pi * t) + 2.5 * np.cos(0.02 * t))
 
 
+LEVELS_HOLD_S = 60.0
+
+
+def held_levels_signal(t: np.ndarray, max_current_a: float = 5.0, hold_s: float = LEVELS_HOLD_S,
+                       seed: int = 0) -> np.ndarray:
+    """Held random levels [A]: a current drawn uniformly from -max_current_a to max_current_a, held hold_s [s]
+    each (steps, deterministic by seed): its steps hand the current from one wire to the other at full scale,
+    the hand-overs a slow sine does not show."""
+    t = np.asarray(t, dtype=float)
+    index = np.floor(np.maximum(t, 0.0) / hold_s).astype(int)
+    levels = np.random.default_rng(seed).uniform(-max_current_a, max_current_a, int(index.max(initial=0)) + 1)
+    return levels[index]
+
+
 DESIGNED_LEVELS = (0.45, 0.55, 0.65, 0.75, 0.85, 1.0)  # excursion peaks, fractions of the current limit
 
 

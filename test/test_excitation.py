@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from sma_stage.cli import main
-from sma_stage.signals import DESIGNED_LEVELS, designed_identification_signal, designed_schedule
+from sma_stage.signals import (
+    DESIGNED_LEVELS,
+    designed_identification_signal,
+    designed_schedule,
+    held_levels_signal,
+    paper_validation_signal,
+)
 
 
 def test_the_designed_signal_heats_each_wire_to_every_level_within_the_limit():
@@ -40,3 +46,33 @@ def test_a_bad_excitation_option_is_one_line_and_writes_nothing(tmp_path, capsys
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and error.startswith("gpi_tool: error:")
     assert not out.exists()
+
+
+def test_gpi_tool_excitation_writes_the_validation_shapes(tmp_path):
+    """`validation` is the paper's two cosines scaled to --max-current; `levels` holds random levels within it for
+    --hold seconds each, on both wires, the same for a seed and another for another seed."""
+    written = {}
+    for name, arguments in (("validation", []), ("levels", ["--hold", "40", "--seed", "3"]),
+                            ("again", ["--hold", "40", "--seed", "3"]), ("other", ["--hold", "40", "--seed", "4"])):
+        out = tmp_path / f"{name}.csv"
+        kind = "validation" if name == "validation" else "levels"
+        assert main(["excitation", kind, "--max-current", "4", "--out", str(out), *arguments]) in (0, None)
+        written[name] = np.loadtxt(out, delimiter=",", skiprows=1)
+    t, validation = written["validation"].T
+    np.testing.assert_allclose(validation, paper_validation_signal(t, 0.8), atol=1e-8)
+    t, levels = written["levels"].T
+    assert t.size == 5000 and np.max(np.abs(levels)) <= 4.0 and levels.min() < -1.0 and levels.max() > 1.0
+    holds = levels.reshape(-1, 200)  # 40 s of 0.2 s samples
+    assert np.all(holds == holds[:, :1]) and np.all(np.diff(holds[:, 0]) != 0.0)
+    np.testing.assert_array_equal(levels, written["again"][:, 1])
+    assert not np.array_equal(levels, written["other"][:, 1])
+    np.testing.assert_allclose(levels, held_levels_signal(t, 4.0, 40.0, 3), atol=1e-8)
+
+
+@pytest.mark.parametrize(("arguments", "message"), [(["levels", "--hold", "0"], "--hold must be positive"),
+                                                    (["paper", "--hold", "30"], "--hold is for the levels excitation")])
+def test_a_bad_hold_is_one_line_and_writes_nothing(tmp_path, capsys, arguments, message):
+    out = tmp_path / "x.csv"
+    assert main(["excitation", *arguments, "--out", str(out)]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and message in error and not out.exists()
