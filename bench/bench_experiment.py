@@ -31,7 +31,7 @@ import antagonistic_plant as physical  # noqa: E402
 from record_results import recorded  # noqa: E402
 
 from sma_stage.experiment.design import designed_signal  # noqa: E402
-from sma_stage.experiment.probe import analyse_probe, probe_signal  # noqa: E402
+from sma_stage.experiment.probe import analyse_probe, probe_duration_s, probe_signal  # noqa: E402
 from sma_stage.identify.checks import moving_parts  # noqa: E402
 from sma_stage.identify.families import FAMILIES  # noqa: E402
 from sma_stage.identify.metrics import error_metrics  # noqa: E402
@@ -40,7 +40,7 @@ from sma_stage.io import make_series  # noqa: E402
 
 PERIOD_S = physical.SAMPLE_PERIOD_S
 RECORD_S = 1000.0
-PROBE_S = 100.0
+PROBE_S = probe_duration_s(RECORD_S)  # the package's default share of the record (100 s)
 LIMIT_A = 5.0
 CHOICE_LEVELS_DRAW = 5
 

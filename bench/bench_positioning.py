@@ -57,7 +57,7 @@ from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.control import compensator as compensator_module  # noqa: E402
 from sma_stage.control.compensator import imc_gains  # noqa: E402
 from sma_stage.experiment.design import designed_signal  # noqa: E402
-from sma_stage.experiment.probe import analyse_probe, probe_signal  # noqa: E402
+from sma_stage.experiment.probe import analyse_probe, probe_duration_s, probe_signal  # noqa: E402
 from sma_stage.identify.families import FAMILIES  # noqa: E402
 from sma_stage.identify.pipeline import identify_recording  # noqa: E402
 from sma_stage.io import make_series  # noqa: E402
@@ -67,7 +67,7 @@ from sma_stage.plant import StageSimulator  # noqa: E402
 
 PERIOD_S = 0.2
 RECORD_S = 1000.0
-PROBE_S = 100.0  # of the designed record, as bench_experiment.py's
+PROBE_S = probe_duration_s(RECORD_S)  # of the designed record, the package's default share (100 s)
 RECORDS = ("paper", "designed")
 MAX_CURRENT_A = 5.0
 STROKE_FRACTION = 0.7
