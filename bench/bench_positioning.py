@@ -7,12 +7,17 @@ the setpoints' band on each plant (no law crosses it faster) and, over the plant
 and how many plants are within issue 49's targets.
 
     .venv/bin/python bench/bench_positioning.py [--plants simulator,nominal,...] [--out FILE] [--seed 0]
-        [--record paper|designed]
+        [--record paper|designed] [--validate-levels]
     .venv/bin/python bench/bench_positioning.py --reversal-speeds 1,2,3,4 [--plants ...]
 
 With --record designed, each plant is identified instead from what `gpi_tool excitation probe` and `designed --probe`
 would run on it (a 100 s probe, then the design from it drawn with the seed; 1000 s in all), the setpoints still
 over 70 % of the stroke the paper's record reached (bench/results/positioning_designed.md).
+
+With --validate-levels, each identification is also validated on held random levels (what `gpi_tool excitation
+levels --seed N` writes, N the bench's seed, run from the plant's own settled stage), the family, the effects and the
+two-wire model's start and tension coupling chosen on the record each predicts worst, as docs/experiment.md tells a
+user to do (`diagnose --validate`; bench/results/positioning_levels.md, or positioning_designed_levels.md).
 
 With --reversal-speeds, instead: the held levels in the PI loop (without and with the preview) at each value of the
 compensator's REVERSAL_SPEED (the integral's gain while a held setpoint's reversals go through the linear path), one
@@ -64,6 +69,7 @@ from sma_stage.io import make_series  # noqa: E402
 from sma_stage.io.atomic import atomic_write_text  # noqa: E402
 from sma_stage.model.kinds import AnyModel  # noqa: E402
 from sma_stage.plant import StageSimulator  # noqa: E402
+from sma_stage.signals import held_levels_signal  # noqa: E402
 
 PERIOD_S = 0.2
 RECORD_S = 1000.0
@@ -144,11 +150,12 @@ class Identified:
     seconds: float
 
 
-def identify(name: str, seed: int, record: str = "paper") -> Identified:
+def identify(name: str, seed: int, record: str = "paper", levels: bool = False) -> Identified:
     """Run the plant through its identification record and identify it (every family, 4 rounds, as `gpi_tool
-    diagnose` does); the validation record (the paper's) runs on a fresh plant of the same kind. record: "paper"
-    (the paper's decaying sine) or "designed" (designed_run). The stroke is what the paper's record reached in
-    either case, so that both records' tables track the same setpoints."""
+    diagnose` does); the validation record (the paper's) runs on a fresh plant of the same kind, and with `levels`
+    held random levels (held_levels_signal drawn with the seed) on another. record: "paper" (the paper's decaying
+    sine) or "designed" (designed_run). The stroke is what the paper's record reached in either case, so that every
+    table tracks the same setpoints."""
     started = time.perf_counter()
     t = PERIOD_S * np.arange(int(RECORD_S / PERIOD_S))
     plant = make_plant(name, seed)
@@ -158,9 +165,13 @@ def identify(name: str, seed: int, record: str = "paper") -> Identified:
         plant = make_plant(name, seed)
         current, y_ident = designed_run(plant, seed)
     y_valid = make_plant(name, seed + 1).record(physical.paper_validation(t))
+    more = []
+    if levels:
+        held = held_levels_signal(t, MAX_CURRENT_A, seed=seed)
+        more.append(make_series(t, held, make_plant(name, seed + 2).record(held), "held levels"))
     found = identify_recording(make_series(t, current, y_ident, "identification"),
                                make_series(t, physical.paper_validation(t), y_valid, "validation"),
-                               diagnose_rounds=4, workers=2, families=FAMILIES)
+                               diagnose_rounds=4, workers=2, families=FAMILIES, more_validation=more)
     rows = found.report.get("families") or []
     chosen = [row for row in rows if row["chosen"]]
     valid = chosen[0]["validation"]["rms_pct"] if chosen else found.report["validation"]["rms_pct"]
@@ -436,6 +447,9 @@ def main() -> None:
     parser.add_argument("--record", choices=RECORDS, default="paper",
                         help="the identification record: the paper's decaying sine, or the probe and the designed "
                              "excitation (default out bench/results/positioning_designed.md)")
+    parser.add_argument("--validate-levels", action="store_true",
+                        help="validate on held random levels too, the choice on the worst record (default out "
+                             "bench/results/positioning_levels.md or positioning_designed_levels.md)")
     parser.add_argument("--reversal-speeds", help="comma-separated values of REVERSAL_SPEED: the held levels only")
     parser.add_argument("--out", help="the table's file (default bench/results/positioning.md, with --reversal-speeds "
                                       "bench/results/reversal_speed.md)")
@@ -458,7 +472,7 @@ def main() -> None:
     print(HEADER, flush=True)
     tracked: dict[str, dict[str, list[Tracked]]] = {}
     for name in names:
-        identified = identify(name, args.seed, args.record)
+        identified = identify(name, args.seed, args.record, args.validate_levels)
         for line in rows(name, identified, args.seed, tracked.setdefault(name, {})):
             table.append(line)
             print(line, flush=True)
@@ -471,11 +485,14 @@ def main() -> None:
     print("\n".join(traverse))
     against = summary(tracked)
     print("\n".join(against))
-    note = run_note(f"--plants {args.plants} --seed {args.seed} --record {args.record}", started)
+    levels = " --validate-levels" if args.validate_levels else ""
+    note = run_note(f"--plants {args.plants} --seed {args.seed} --record {args.record}{levels}", started)
     designed = args.record == "designed"
-    write(Path(args.out or REPO / "bench" / "results" / ("positioning_designed.md" if designed else "positioning.md")),
+    default_out = ("positioning_designed" if designed else "positioning") + ("_levels" if levels else "") + ".md"
+    write(Path(args.out or REPO / "bench" / "results" / default_out),
           "Positioning stages the control law was not tuned on"
-          + (", each identified from the probe and the designed excitation" if designed else ""),
+          + (", each identified from the probe and the designed excitation" if designed else "")
+          + (", validated on held random levels too" if levels else ""),
           "\n".join(table) + "\n\nOver the plants: the RMS range [% of the stroke] and the plants within issue 49's "
           "targets (RMS within 1 % with the PI loop, 3 % in feedforward; held levels: every hold settled within "
           "0.2 %):\n\n" + "\n".join(against) + "\n\n" + "The full current's crossing of the setpoints' band (no law crosses it faster), "
