@@ -30,6 +30,7 @@ from record_results import recorded  # noqa: E402
 from sma_stage.identify.families import FAMILIES  # noqa: E402
 from sma_stage.identify.pipeline import identify_recording  # noqa: E402
 from sma_stage.io import make_series  # noqa: E402
+from sma_stage.model.kinds import AnyModel  # noqa: E402
 
 LIMIT_A = 5.0
 RATE_A_S = 0.02
@@ -53,7 +54,7 @@ def reversal_curves(peaks: np.ndarray) -> np.ndarray:
     return np.concatenate([current for _, current in curves(peaks)])
 
 
-def per_curve_rms(model: object, recorded: tuple[np.ndarray, np.ndarray, np.ndarray],
+def per_curve_rms(model: AnyModel, recorded: tuple[np.ndarray, np.ndarray, np.ndarray],
                   peaks: np.ndarray) -> tuple[list[str], float]:
     """The model's RMS error [% of the record's span] on each curve of a record of `peaks`, run from rest over the
     whole record, as "label rms"; and its RMS without the first peak's two curves."""
