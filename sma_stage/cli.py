@@ -234,6 +234,17 @@ def _in_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
+def _drop_unraisable(unraisable: object) -> None:
+    """sys.unraisablehook after an interrupt: a finalizer's error is not printed."""
+
+
+def _quiet_teardown() -> None:
+    """After Ctrl-C or SIGTERM, the finalizers of objects the interrupt left half-built may raise as they are
+    collected (llvmlite's, when it lands while numba loads or compiles a kernel: "Exception ignored in
+    ObjectRef.__del__" and a traceback after the one line): such errors are dropped from here on."""
+    sys.unraisablehook = _drop_unraisable
+
+
 def _run(args: argparse.Namespace) -> int:
     try:
         result = args.handler(args)
@@ -248,9 +259,11 @@ def _run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return EXIT_BAD_INPUT
     except Terminated:
+        _quiet_teardown()
         print("gpi_tool: terminated", file=sys.stderr)
         return 128 + signal.SIGTERM
     except KeyboardInterrupt:
+        _quiet_teardown()
         print("gpi_tool: interrupted", file=sys.stderr)
         return 130
     if getattr(args, "json", False):

@@ -305,6 +305,34 @@ def test_holdout_leaving_too_few_samples_is_refused_by_its_value(data, capsys):
     assert "holdout fraction 1e-300 leaves 0 of 600 samples" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("interrupt, line, status", [("terminated", "gpi_tool: terminated", 143),
+                                                     ("interrupted", "gpi_tool: interrupted", 130)])
+def test_an_interrupt_prints_one_line_whatever_its_half_built_objects_raise(interrupt, line, status, monkeypatch,
+                                                                            capsys):
+    """A SIGTERM landing while numba loaded a kernel left llvmlite objects whose finalizers raised as they were
+    collected: "Exception ignored in ObjectRef.__del__" and a traceback after the one line."""
+    import argparse
+    import gc
+    import sys
+
+    from sma_stage import cli
+
+    raised = []
+    monkeypatch.setattr(sys, "unraisablehook", raised.append)
+
+    class HalfBuilt:
+        def __del__(self):
+            raise AttributeError("'ValueRef' object has no attribute '_as_parameter_'")
+
+    def handler(args):
+        half_built = HalfBuilt()  # noqa: F841 -- freed with this frame, once the interrupt is handled
+        raise cli.Terminated if interrupt == "terminated" else KeyboardInterrupt
+
+    assert cli._run(argparse.Namespace(handler=handler)) == status
+    gc.collect()
+    assert raised == [] and capsys.readouterr().err.strip() == line
+
+
 def test_sigterm_ends_a_diagnosis_and_its_workers_as_ctrl_c_does(data, tmp_path):
     """SIGTERM used to end the main process at once and leave the forkserver, the resource tracker and both
     workers running, and a staging folder beside --out."""
