@@ -60,8 +60,9 @@ def per_curve_rms(model: AnyModel, recorded: tuple[np.ndarray, np.ndarray, np.nd
     whole record, as "label rms"; and its RMS without the first peak's two curves."""
     t, u, y = recorded
     error = 100.0 * (model.without_state().predict(t, u) - y) / float(np.ptp(y))
-    bounds = np.cumsum([0] + [current.size for _, current in curves(peaks)])
-    labels = [label for label, _ in curves(peaks)]
+    parts = curves(peaks)
+    bounds = np.cumsum([0] + [current.size for _, current in parts])
+    labels = [label for label, _ in parts]
     found = [f"{label} {np.sqrt(np.mean(error[start:end] ** 2)):.2f}"
              for label, start, end in zip(labels, bounds[:-1], bounds[1:], strict=True)]
     return found, float(np.sqrt(np.mean(error[bounds[2]:] ** 2)))

@@ -10,7 +10,7 @@ import numpy as np
 from sma_stage.errors import InputError
 from sma_stage.identify.effects import EffectFit, check_record
 from sma_stage.identify.fit import FitResult, information_criterion
-from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.identify.metrics import ErrorMetrics, error_metrics, worst
 from sma_stage.identify.residual_tests import ResidualTests, residual_tests
 from sma_stage.identify.start import StartFit, estimate_start, start_fit
 from sma_stage.model.identified import IdentifiedModel, Start
@@ -142,7 +142,7 @@ class Validation:
         one of `others`, each run from rest (as the families are scored on them)."""
         errors = [self.errors(self.predict(model, identification_start).predicted)]
         errors += [error_metrics(y, model.without_state().predict(t, u)) for t, u, y in self.others]
-        return max(errors, key=lambda metrics: metrics.rms_pct)
+        return worst(errors)
 
     def tests(self, predicted: np.ndarray) -> ResidualTests:
         """The residual tests of a prediction over the scored samples."""

@@ -18,6 +18,7 @@ from sma_stage.identify.bouc_wen import BoucWenFit, fit_bouc_wen
 from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.free_weights import fit_free_weights
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.identify.metrics import worst as worst_record
 from sma_stage.identify.two_wire import HeldOut, TwoWireFit, TwoWireFitting
 from sma_stage.identify.workers import Pending, Workers
 from sma_stage.io.series import Series
@@ -48,7 +49,7 @@ class FamilyRow:
         """The errors on the validation record it predicts worst (by RMS): what the choice goes by (None: not
         scored on every record)."""
         every = (self.validation, *self.more_validation)
-        return None if any(errors is None for errors in every) else max(every, key=lambda errors: errors.rms_pct)
+        return None if any(errors is None for errors in every) else worst_record(every)
 
     def to_dict(self) -> dict[str, object]:
         """The report's form (with more than one validation record: every record's errors, and the worst)."""

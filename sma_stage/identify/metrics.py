@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,3 +38,9 @@ def error_metrics(measured: np.ndarray, predicted: np.ndarray) -> ErrorMetrics:
         max_pct=float(100.0 * np.max(np.abs(error)) / span),
         samples=int(measured.size),
     )
+
+
+def worst(errors: Iterable[ErrorMetrics]) -> ErrorMetrics:
+    """Of several records' errors, those of the record predicted worst (the largest RMS % of its span): what a
+    choice made on several validation records is judged by."""
+    return max(errors, key=lambda metrics: metrics.rms_pct)

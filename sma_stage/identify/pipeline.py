@@ -109,8 +109,8 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
     more = tuple(series.thinned(block) for series in more)
     ident, valid, scored_from, validation_source = _split(record, validation, holdout_fraction)
     compared = families != ("gpi",) and valid is not None and float(np.ptp(valid.output[scored_from:])) > 0.0
-    held_out = HeldOut(valid.t, valid.input, valid.output, scored_from,
-                       tuple((series.t, series.input, series.output) for series in more)) if compared else None
+    others = tuple((series.t, series.input, series.output) for series in more)
+    held_out = HeldOut(valid.t, valid.input, valid.output, scored_from, others) if compared else None
     held = {family: start_held_current_fit(family, ident, output_unit, pool, held_out)
             for family in HELD_CURRENT_FAMILIES if compared and family in families}  # beside the GPI's fit
     with one_blas_thread():
@@ -123,7 +123,7 @@ def _identify(record: Series, validation: Series | None, holdout_fraction: float
         try:
             found = diagnose(ident, valid, base=fit, operators=operators, max_rounds=diagnose_rounds,
                              scored_from=scored_from, output_unit=fit.parameters.output_unit, progress=progress,
-                             pool=pool, others=tuple((series.t, series.input, series.output) for series in more))
+                             pool=pool, others=others)
         except Exception as error:  # noqa: BLE001 -- the fit stands whatever the diagnosis meets
             warnings.append(f"diagnosis failed, the plain GPI fit is kept: {type(error).__name__}: "
                             f"{' '.join(str(error).split())}")

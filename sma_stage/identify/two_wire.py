@@ -30,7 +30,7 @@ from sma_stage.identify.checks import check_data
 from sma_stage.identify.counts import COUNT_FIT_MARGIN
 from sma_stage.identify.diagnosis import judge
 from sma_stage.identify.fit import information_criterion
-from sma_stage.identify.metrics import ErrorMetrics, error_metrics
+from sma_stage.identify.metrics import ErrorMetrics, error_metrics, worst
 from sma_stage.identify.workers import Pending, Workers
 from sma_stage.model.checks import checked_record
 from sma_stage.model.two_wire import SCALARS, TwoWireModel, TwoWireParameters
@@ -105,7 +105,7 @@ class HeldOut:
         """The model's errors on the record it predicts worst (the largest RMS % of the record's span)."""
         errors = [error_metrics(self.y[self.scored_from:], model.predict(self.t, self.u)[self.scored_from:])]
         errors += [error_metrics(y, model.predict(t, u)) for t, u, y in self.others]
-        return max(errors, key=lambda metrics: metrics.rms_pct)
+        return worst(errors)
 
     def rms_pct(self, model: TwoWireModel) -> float:
         """The model's RMS error on the record it predicts worst [% of its span]."""
