@@ -232,9 +232,13 @@ MODES = [Mode("feedforward", False, False), Mode("feedforward, preview", False, 
          Mode("PI loop", True, False), Mode("PI loop, preview", True, True)]
 
 
-def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.ndarray], mode: Mode) -> Tracked:
-    """The plant (a copy of it after its identification record) driven through one shape by the compensator; with
-    a preview the compensator is given the setpoint its preview_s ahead (to the nearest step)."""
+def drive(identified: Identified, form: Callable[[np.ndarray], np.ndarray], mode: Mode, seconds: float,
+          learning_period_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The plant (a copy of it after its identification record) driven for LEAD_IN_S at the shape's first value, then
+    `seconds` through the shape, by the compensator; with a preview the compensator is given the setpoint its
+    preview_s ahead (to the nearest step); with learning_period_s (the PI loop) the compensator learns a setpoint of
+    that period from the shape's start (Compensator.learning_period_s). (positions [m] after each command, the currents [A], the setpoints
+    [m], one more than the commands: positions[k] is measured when setpoint k + 1 is due)."""
     plant = copy.deepcopy(identified.plant)
     model = identified.model
     feedback = mode.feedback
@@ -245,15 +249,27 @@ def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.nd
     span = high - low
     centre, half = 0.5 * (low + high), 0.5 * STROKE_FRACTION * span
     lead_in = int(LEAD_IN_S / PERIOD_S)
-    steps = lead_in + int(duration_s(shape) / PERIOD_S)
+    steps = lead_in + int(seconds / PERIOD_S)
     since_s = np.maximum(PERIOD_S * (np.arange(steps + 1 + ahead) - lead_in), 0.0)
     wanted = centre + half * form(since_s)
     measured = plant.step(compensator.drive.initial_current())
     positions, currents = np.empty(steps), np.empty(steps)
     for k in range(steps):
+        if k == lead_in:
+            compensator.learning_period_s = learning_period_s
         currents[k] = compensator.command(wanted[k], measured if feedback else None, PERIOD_S if k else 0.0,
                                           ahead_m=wanted[k + ahead] if ahead else None)
         measured = positions[k] = plant.step(currents[k])
+    return positions, currents, wanted[:steps + 1]
+
+
+def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.ndarray], mode: Mode) -> Tracked:
+    """`drive` through one shape for its duration_s, scored (see the module's docstring)."""
+    positions, currents, wanted = drive(identified, form, mode, duration_s(shape))
+    low, high = identified.stroke_m
+    span = high - low
+    lead_in = int(LEAD_IN_S / PERIOD_S)
+    steps = positions.size
     scored = slice(lead_in, None)
     error = 100.0 * (positions - wanted[1:steps + 1])[scored] / span
     change = 100.0 * np.abs(np.diff(currents[lead_in - 1:])) / MAX_CURRENT_A
@@ -428,9 +444,9 @@ def reversal_scan(names: list[str], seed: int, speeds: list[float]) -> list[str]
     return lines
 
 
-def run_note(arguments: str, started: float) -> str:
+def run_note(arguments: str, started: float, script: str = "bench_positioning.py") -> str:
     """The line under a table: the command with its arguments, the seconds since `started` and the date."""
-    return (f"`.venv/bin/python bench/bench_positioning.py {arguments}`: {time.perf_counter() - started:.0f} s on "
+    return (f"`.venv/bin/python bench/{script} {arguments}`: {time.perf_counter() - started:.0f} s on "
             f"{time.strftime('%Y-%m-%d')}; deterministic for a seed.")
 
 

@@ -727,6 +727,27 @@ def test_compensator_takes_a_model_with_a_lag_while_running_and_refuses_bad_gain
     assert (compensator.core.tau_s, compensator.core.kp, compensator.core.ki) == (11.0, 1.0, 0.1)
 
 
+def test_compensator_learns_a_repeated_setpoint_and_refuses_a_bad_period(ros):
+    """learning_period: 0.3 s (under four of the learning's bins) is refused in one line and the period in force
+    stays; with 1 s the compensator learns from each second of errors, and says so on /diagnostics."""
+    compensator = compensator_node(ros, rate_hz=20.0, feedback=True)
+    assert compensator.describe_learning() == "off"
+    result = compensator.set_parameters([Parameter("learning_period", value=0.3)])[0]
+    assert not result.successful and "learning_period" in result.reason and "\n" not in result.reason
+    assert compensator.set_parameters([Parameter("learning_period", value=1.0)])[0].successful
+    assert compensator.core.learning_period_s == 1.0
+    probe = CompensatorProbe(ros, compensator)
+    probe.setpoint_pub.publish(Float64(data=1e-4))
+    for _ in range(60):
+        probe.measure(1.1e-4)
+        time.sleep(0.05)
+    wait_until(lambda: compensator.core.learning is not None and compensator.core.learning.periods >= 1, 5.0,
+               "a period learnt")
+    assert "learnt, the last one's RMS error" in compensator.describe_learning()
+    assert compensator.set_parameters([Parameter("learning_period", value=0.0)])[0].successful
+    assert compensator.core.learning is None and compensator.describe_learning() == "off"
+
+
 def test_compensator_model_follows_the_current_applied_while_it_does_not_command(ros):
     lag = Effect("thermal_lag", {"tau_s": 0.3})
     compensator = compensator_node(ros, rate_hz=2.0, model=model_text(DEFAULT_PARAMS, OPERATORS, lag))

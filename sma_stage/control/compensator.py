@@ -122,6 +122,16 @@ sine's changes the current by at most the rate limit's 4 % per step, `prestraine
 6.80 % against 7.70 %, and a held level near the hand-over settles better on one draw and worse on another
 (`hot_alloy`, PI loop with the preview: the worst hold of draw 2 2.26 -> 0.83 %, of draw 3 0.22 -> 1.38 %).
 
+A setpoint that repeats (`learning_period_s` above 0, with a measurement): the setpoint now and the one ahead get
+a correction learnt from the errors at the same phase of the periods before (iterative learning:
+sma_stage.control.learning.PeriodicLearning, its lag a third of the model's tau, its correction within
+LEARNING_LIMIT_FRACTION of the reach span), and the inverse and the loop follow the corrected setpoint. What the
+model misses at each hand-over between the wires repeats period after period (bench/README.md, positioning), and the
+loop corrects it only once it has happened; the learning corrects it ahead. A setpoint that holds keeps the
+correction it had (a held level's loop below sees a held setpoint). The learning begins at the first command with a
+measurement after its period was set or the compensator reset (a new model, `set_model`). Figures:
+bench/bench_learning.py (bench/README.md, learning).
+
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
 (sma_stage.model.effects):
 - thermal_lag: its state is advanced with the command sent, held over each step (`lag_step` with equal
@@ -153,6 +163,7 @@ import copy
 import math
 
 from sma_stage.control.drives import Drive, dead_band_a, drive_for, model_tau_s, reach_span_m
+from sma_stage.control.learning import PeriodicLearning, checked_period_s, learning_lag_s
 from sma_stage.errors import InputError, finite_number
 from sma_stage.model.effects import lag_drive_for, lag_step
 from sma_stage.model.kinds import AnyModel, StreamModel
@@ -194,6 +205,7 @@ RESYNC_HOLD_S = 2.0  # the true model takes over after a hold of at least this l
 DEFAULT_DEADBAND_M = 1e-6  # five times the default simulator's sensor noise (0.2 um RMS)
 DEFAULT_MAX_RATE_A_PER_S = 1.0
 REVERSAL_SPEED = 3.0  # the integral's gain, in ki, while a held setpoint's reversals go through the linear path
+LEARNING_LIMIT_FRACTION = 0.2  # the learnt correction at most this share of the model's reach span
 LAMBDA_FRACTION = 0.7  # the loop's closed-loop time constant, as a fraction of the lag the lead leaves (scan: bench/README.md at b315809)
 
 
@@ -296,7 +308,8 @@ class Compensator:
 
     model: the identified model (a GPI or a two-wire model, output in m); max_current_a: the current limit
     [A]; method: the GPI inverse, "exact" or "analytic" (a two-wire model's is exact only); kp [m/m] and
-    ki [1/s]: the PI gains (used only when a measurement is given).
+    ki [1/s]: the PI gains (used only when a measurement is given); learning_period_s [s]: the period of a setpoint
+    that repeats, learnt with the PI loop (PeriodicLearning; 0: none).
     """
 
     kp = _AtLeast()  # proportional gain [m of target per m of error]
@@ -311,7 +324,8 @@ class Compensator:
                  kp: float = 0.0, ki: float = 0.0, lead_limit: float = DEFAULT_LEAD_LIMIT,
                  deadband_m: float = DEFAULT_DEADBAND_M, max_rate_a_per_s: float = DEFAULT_MAX_RATE_A_PER_S,
                  feedforward_lead_limit: float = DEFAULT_FEEDFORWARD_LEAD_LIMIT,
-                 feedforward_step_lead_limit: float = DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT) -> None:
+                 feedforward_step_lead_limit: float = DEFAULT_FEEDFORWARD_STEP_LEAD_LIMIT,
+                 learning_period_s: float = 0.0) -> None:
         self.kp = kp
         self.ki = ki
         self.lead_limit = lead_limit
@@ -320,7 +334,9 @@ class Compensator:
         self.deadband_m = deadband_m
         self.max_rate_a_per_s = max_rate_a_per_s
         self._limit, self._method = 0.0, "exact"
+        self._learning_period_s = 0.0
         self.set_model(model, max_current_a, method)
+        self.learning_period_s = learning_period_s
 
 
     @property
@@ -370,7 +386,33 @@ class Compensator:
         self._previewing = True
         self._reach_span_m = reach_span_m(self.drive)
         self._amps_per_m = 2.0 * self._limit / self._reach_span_m
+        self._restart_learning()
         self._release_inverse()
+
+    @property
+    def learning_period_s(self) -> float:
+        """The period [s] of a setpoint that repeats, learnt with the PI loop (0: no learning); setting another one
+        starts the learning again."""
+        return self._learning_period_s
+
+    @learning_period_s.setter
+    def learning_period_s(self, value: float) -> None:
+        period = checked_period_s(value, name="learning_period_s")
+        if period != self._learning_period_s:
+            self._learning_period_s = period
+            self._restart_learning()
+
+    @property
+    def learning(self) -> PeriodicLearning | None:
+        """The learning in force (None: none, or before the first command with a measurement)."""
+        return self._learning
+
+    def _restart_learning(self) -> None:
+        """No correction learnt; the learning's period begins at the next command with a measurement."""
+        self._learning: PeriodicLearning | None = None
+        self._learning_s = 0.0  # since the learning began [s]
+        self._learnt: tuple[float, float, float, float] | None = None  # (setpoint, its correction, ahead, its) [m]
+        self._learnt_side = self._relay_side  # the relay's side the learning last saw
 
     def _release_inverse(self) -> None:
         """The inverse free to follow the loop's target both ways; the linear path at rest."""
@@ -435,6 +477,8 @@ class Compensator:
         elif dt > 0.0:
             self._hold_s = dt
         ahead = None if ahead_m is None else self._bounded(finite_number("ahead_m", ahead_m))
+        if measured is not None and self._learning_period_s > 0.0:
+            now, ahead = self._corrected(now, ahead, measured, dt)
         setpoint = self._previewed(now, ahead, dt)
         moving = self._setpoint.moves(setpoint, dt)
         held = measured is not None and setpoint == self._previous_setpoint
@@ -465,6 +509,28 @@ class Compensator:
         self._slewing = limited != bounded
         self.command_a = self._relay_held(limited, dt)
         return self.command_a
+
+    def _corrected(self, now: float, ahead: float | None, measured: float, dt: float) -> tuple[float, float | None]:
+        """(the setpoint now, the one ahead) [m] with the learnt correction added (each bounded), after the error of
+        the setpoint now is recorded; a setpoint that holds keeps the correction it had (see the module's
+        docstring)."""
+        if self._learning is None:
+            self._learning = PeriodicLearning(self._learning_period_s, learning_lag_s(self.drive.tau_s),
+                                              LEARNING_LIMIT_FRACTION * self._reach_span_m)
+        else:
+            self._learning_s += dt
+        learning, time_s = self._learning, self._learning_s
+        learning.record(time_s, measured - now, 0 != self._learnt_side != self._relay_side)
+        self._learnt_side = self._relay_side
+        before = self._learnt
+        now_correction = before[1] if before is not None and before[0] == now else learning.correction_m(time_s)
+        ahead_correction = 0.0
+        if ahead is not None:
+            held = before is not None and before[2] == ahead
+            ahead_correction = before[3] if held else learning.correction_m(time_s + self.preview_s())
+        self._learnt = (now, now_correction, math.nan if ahead is None else ahead, ahead_correction)
+        corrected_ahead = None if ahead is None else self._bounded(ahead + ahead_correction)
+        return self._bounded(now + now_correction), corrected_ahead
 
     def _previewed(self, now: float, ahead: float | None, dt: float) -> float:
         """The setpoint [m] the inverse is driven towards: ahead, while the setpoint ahead moves no faster than the

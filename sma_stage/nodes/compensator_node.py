@@ -61,6 +61,7 @@ from sma_stage.control.compensator import (
     imc_gains,
     slew_time_s,
 )
+from sma_stage.control.learning import checked_period_s
 from sma_stage.errors import InputError
 from sma_stage.io.rosbag_io import joint_index
 from sma_stage.model.inverse import METHODS
@@ -126,6 +127,9 @@ COMPENSATOR_PARAMS = [
     Param("preview", True, "with setpoints stamped ahead (setpoint_stamped), drive the inverse towards the one due "
           "the lag the lead leaves later (Compensator.preview_s), the loop's error against the setpoint now; false: "
           "the setpoint now only"),
+    Param("learning_period", 0.0, "the setpoint repeats with this period [s of stage time]: with feedback, a correction "
+          "learnt from each period's error is added to the next (iterative learning; it begins again when this or the "
+          "model changes, or enabled turns true); 0: off", 0.0, 1e6),
     Param("control_trigger", "timer", "when the loop computes a command: 'timer' (rate_hz, and at once on a new "
           "setpoint) or 'joint_states' (once for each position the stage publishes, at its stamp: the loop in step "
           "with the stage, as a simulated stage many times faster than the wall clock needs)", read_only=True),
@@ -155,7 +159,7 @@ MAX_SCHEDULED = 10_000  # stamped setpoints kept ahead of their time (the earlie
 def loop_settings(model: AnyModel, values: CompensatorSettings, period_s: float) -> dict[str, float]:
     """The control core's loop settings from the node's parameter values, the model and the control period [s of
     stage time] (InputError when one is unusable): kp and ki (derived or manual), lead limits, deadband, rate
-    limit."""
+    limit, learning period."""
     if values.tuning not in TUNINGS:
         raise InputError(f"tuning must be one of {', '.join(TUNINGS)}, got {values.tuning!r}")
     if values.tuning == "imc":
@@ -166,7 +170,8 @@ def loop_settings(model: AnyModel, values: CompensatorSettings, period_s: float)
             "feedforward_lead_limit": values.feedforward_lead_limit,
             "feedforward_step_lead_limit": values.feedforward_step_lead_limit,
             "deadband_m": values.deadband,
-            "max_rate_a_per_s": values.max_current_rate}
+            "max_rate_a_per_s": values.max_current_rate,
+            "learning_period_s": checked_period_s(values.learning_period, name="learning_period")}
 
 
 def unexpected(error: Exception) -> str:
@@ -493,12 +498,24 @@ class CompensatorNode(Node):
             "ki_per_s": self.core.ki,
             "control_period_s": round(self.period_estimate_s, 4),
             "targets_beyond_reach": self.clipped_count,
+            "learning": self.describe_learning(),
             "feedback": self.settings.feedback,
             "enabled": self.settings.enabled,
         }
         return DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: compensator", message=text,
                                 hardware_id="sma_stage compensator",
                                 values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
+
+    def describe_learning(self) -> str:
+        """The learning in force, in a few words: off, or its period, the periods learnt and the last one's RMS
+        error."""
+        learning = self.core.learning
+        if self.core.learning_period_s == 0.0:
+            return "off"
+        if learning is None or learning.periods == 0:
+            return f"period {self.core.learning_period_s:g} s, in its first period"
+        return (f"period {learning.period_s:g} s, {learning.periods} learnt, the last one's RMS error "
+                f"{learning.last_rms_m:.3g} m")
 
     def publish_diagnostics(self) -> None:
         """Publish the status on /diagnostics."""
