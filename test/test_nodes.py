@@ -737,8 +737,8 @@ def test_compensator_learns_a_repeated_setpoint_and_refuses_a_bad_period(ros):
     assert compensator.set_parameters([Parameter("learning_period", value=1.0)])[0].successful
     assert compensator.core.learning_period_s == 1.0
     probe = CompensatorProbe(ros, compensator)
-    probe.setpoint_pub.publish(Float64(data=1e-4))
-    for _ in range(60):
+    for k in range(60):  # a moving setpoint: the learning begins when the setpoint first moves
+        probe.setpoint_pub.publish(Float64(data=1e-4 + 1e-7 * k))
         probe.measure(1.1e-4)
         time.sleep(0.05)
     wait_until(lambda: compensator.core.learning is not None and compensator.core.learning.periods >= 1, 5.0,

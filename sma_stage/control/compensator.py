@@ -124,12 +124,14 @@ sine's changes the current by at most the rate limit's 4 % per step, `prestraine
 
 A setpoint that repeats (`learning_period_s` above 0, with a measurement): the setpoint now and the one ahead get
 a correction learnt from the errors at the same phase of the periods before (iterative learning:
-sma_stage.control.learning.PeriodicLearning, its lag a third of the model's tau, its correction within
-LEARNING_LIMIT_FRACTION of the reach span), and the inverse and the loop follow the corrected setpoint. What the
+sma_stage.control.learning.PeriodicLearning, its lag a third of the model's tau, its bins the control period's
+hold or 0.2 s if longer, its correction within LEARNING_LIMIT_FRACTION of the reach span), and the inverse and the loop follow the corrected setpoint. What the
 model misses at each hand-over between the wires repeats period after period (bench/README.md, positioning), and the
 loop corrects it only once it has happened; the learning corrects it ahead. A setpoint that holds keeps the
-correction it had (a held level's loop below sees a held setpoint). The learning begins at the first command with a
-measurement after its period was set or the compensator reset (a new model, `set_model`). Figures:
+correction it had (a held level's loop below sees a held setpoint). The learning begins when the setpoint first moves
+(a command with a measurement and a hold, a dt or hold_s above 0, whose setpoint differs from the one before) after
+its period was set or the compensator reset (a new model, `set_model`): a setpoint held before the repeated one
+starts is not taken for part of its period. Figures:
 bench/bench_learning.py (bench/README.md, learning).
 
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
@@ -163,7 +165,7 @@ import copy
 import math
 
 from sma_stage.control.drives import Drive, dead_band_a, drive_for, model_tau_s, reach_span_m
-from sma_stage.control.learning import PeriodicLearning, checked_period_s, learning_lag_s
+from sma_stage.control.learning import RESOLUTION_S, PeriodicLearning, checked_period_s, learning_lag_s
 from sma_stage.errors import InputError, finite_number
 from sma_stage.model.effects import lag_drive_for, lag_step
 from sma_stage.model.kinds import AnyModel, StreamModel
@@ -412,7 +414,6 @@ class Compensator:
         self._learning: PeriodicLearning | None = None
         self._learning_s = 0.0  # since the learning began [s]
         self._learnt: tuple[float, float, float, float] | None = None  # (setpoint, its correction, ahead, its) [m]
-        self._learnt_side = self._relay_side  # the relay's side the learning last saw
 
     def _release_inverse(self) -> None:
         """The inverse free to follow the loop's target both ways; the linear path at rest."""
@@ -477,7 +478,7 @@ class Compensator:
         elif dt > 0.0:
             self._hold_s = dt
         ahead = None if ahead_m is None else self._bounded(finite_number("ahead_m", ahead_m))
-        if measured is not None and self._learning_period_s > 0.0:
+        if measured is not None and self._learning_period_s > 0.0 and self._hold_s > 0.0:
             now, ahead = self._corrected(now, ahead, measured, dt)
         setpoint = self._previewed(now, ahead, dt)
         moving = self._setpoint.moves(setpoint, dt)
@@ -515,13 +516,17 @@ class Compensator:
         the setpoint now is recorded; a setpoint that holds keeps the correction it had (see the module's
         docstring)."""
         if self._learning is None:
-            self._learning = PeriodicLearning(self._learning_period_s, learning_lag_s(self.drive.tau_s),
-                                              LEARNING_LIMIT_FRACTION * self._reach_span_m)
+            if self._learnt is None or self._learnt[0] == now:  # not before the setpoint moves
+                self._learnt = (now, 0.0, math.nan, 0.0)
+                return now, ahead
+            period = self._learning_period_s
+            self._learning = PeriodicLearning(period, learning_lag_s(self.drive.tau_s),
+                                              LEARNING_LIMIT_FRACTION * self._reach_span_m,
+                                              resolution_s=min(max(RESOLUTION_S, self._hold_s), 0.25 * period))
         else:
             self._learning_s += dt
         learning, time_s = self._learning, self._learning_s
-        learning.record(time_s, measured - now, 0 != self._learnt_side != self._relay_side)
-        self._learnt_side = self._relay_side
+        learning.record(time_s, measured - now)
         before = self._learnt
         now_correction = before[1] if before is not None and before[0] == now else learning.correction_m(time_s)
         ahead_correction = 0.0

@@ -11,14 +11,11 @@ S and Q are centred moving averages (over smoothing_s and twice that), taken rou
 sensor's noise out of c, Q keeps c from learning what changes faster than the stage can follow (the learning's
 robustness filter). The shift: a correction acts on the position only through the stage's heating lag, so the
 correction at phase p is corrected by the error lag_s later (a third of the model's tau: `learning_lag_s`).
-From the second period on (the first began from elsewhere: a hold, another setpoint), a period that is worse than
-the best so far takes back the correction of that best period and halves the gain (down to MIN_GAIN_FRACTION of
-the first). Worse: an RMS error more than WORSE_TOLERANCE above the best's, or more switches of the relay (from one
-wire to the other) than the fewest of any period without an RMS error at least SWITCH_PRICE below the best's. The
-relay's switch at each hand-over makes the stage's answer to c anything but smooth: without the first rule a
-correction could make the error grow period after period, without the second it made the relay switch back and
-forth at hand-overs for an error a few per cent lower (bench/bench_learning.py; bench/README.md, learning). c stays within +-limit_m, and between bins it is
-interpolated linearly.
+From the second period on (the first began from elsewhere: a hold, another setpoint), a period whose RMS error is
+more than WORSE_TOLERANCE above the best so far takes back the correction of that best period and halves the gain
+(down to MIN_GAIN_FRACTION of the first): the relay's switch at each hand-over makes the stage's answer to c
+anything but smooth, and a correction can make the error grow (bench/bench_learning.py; bench/README.md,
+learning). c stays within +-limit_m, and between bins it is interpolated linearly.
 """
 
 from __future__ import annotations
@@ -34,7 +31,6 @@ DEFAULT_SMOOTHING_S = 1.0
 RESOLUTION_S = 0.2  # the correction's and the errors' bins [s]
 LAG_FRACTION = 0.3  # the learning's lag, as a fraction of the model's thermal time constant
 WORSE_TOLERANCE = 0.05  # a period more than 5 % worse (RMS) than the best so far takes the best's correction back
-SWITCH_PRICE = 0.2  # a period with more switches of the relay than the fewest must be this much better (RMS) than the best
 MIN_GAIN_FRACTION = 0.125
 MIN_FILLED = 0.5  # a period learns only when at least this share of its bins got an error
 
@@ -91,9 +87,6 @@ class PeriodicLearning:
         self.smoothing_bins = 2 * round(0.5 * _at_least("smoothing_s", smoothing_s, 0.0) / self.resolution_s) + 1
         self.correction = np.zeros(bins)  # at each bin's start
         self._sums, self._counts = np.zeros(bins), np.zeros(bins, dtype=int)
-        self._switches = 0  # of the relay, in the period now
-        self.fewest_switches = math.inf
-        self.last_switches = 0  # in the last period learnt from
         self._period = 0  # the period now, counted from 0
         self.periods = 0  # periods learnt from
         self.best_rms_m = math.inf
@@ -108,10 +101,9 @@ class PeriodicLearning:
         share = position - first
         return float((1.0 - share) * self.correction[first] + share * self.correction[(first + 1) % self.correction.size])
 
-    def record(self, time_s: float, error_m: float, switched: bool = False) -> None:
+    def record(self, time_s: float, error_m: float) -> None:
         """Take the tracking error [m] (measured position - setpoint, the setpoint without its correction) at time_s
-        [s] since the learning began, not before the last one recorded, and whether the relay switched to the other
-        wire since the last one; a period's end learns."""
+        [s] since the learning began, not before the last one recorded; a period's end learns."""
         time, error = finite_number("time_s", time_s), finite_number("error_m", error_m)
         period = math.floor(time / self.period_s)
         if period < self._period:
@@ -122,12 +114,11 @@ class PeriodicLearning:
         index = min(int((time - period * self.period_s) / self.resolution_s + 1e-6), self.correction.size - 1)
         self._sums[index] += error
         self._counts[index] += 1
-        self._switches += bool(switched)
 
     def _learn(self) -> None:
         filled = self._counts > 0
-        sums, counts, switches = self._sums, self._counts, self._switches
-        self._sums, self._counts, self._switches = np.zeros(sums.size), np.zeros(counts.size, dtype=int), 0
+        sums, counts = self._sums, self._counts
+        self._sums, self._counts = np.zeros(sums.size), np.zeros(counts.size, dtype=int)
         if np.mean(filled) < MIN_FILLED:
             return
         bins = np.arange(sums.size)
@@ -136,11 +127,8 @@ class PeriodicLearning:
         rms = float(np.sqrt(np.mean(means**2)))
         self.last_rms_m = rms
         self.periods += 1
-        self.last_switches = switches
-        unpaid_switches = switches > self.fewest_switches and rms > (1.0 - SWITCH_PRICE) * self.best_rms_m
-        self.fewest_switches = min(self.fewest_switches, switches)
         if self.periods > 1:
-            if rms > (1.0 + WORSE_TOLERANCE) * self.best_rms_m or unpaid_switches:
+            if rms > (1.0 + WORSE_TOLERANCE) * self.best_rms_m:
                 self.correction = self._best_correction.copy()
                 self.gain = max(0.5 * self.gain, MIN_GAIN_FRACTION * self._first_gain)
                 return

@@ -20,7 +20,9 @@ current over half of max_current: control.compensator.imc_gains) and follow ever
 and the lead run on the node clock (simulated time with use_sim_time); the integral stops while the
 command saturates in the direction of the error (anti-windup). With setpoints stamped ahead and `preview` (the default), the inverse
 is driven towards the setpoint due the lag the lead leaves later (Compensator.preview_s: tau / lead_limit),
-the loop's error against the setpoint now. A command is published on each setpoint
+the loop's error against the setpoint now. With `learning_period` (a setpoint that repeats with that period) and
+feedback, a correction learnt from the errors of the periods before is added to the setpoint
+(Compensator.learning_period_s; /diagnostics says how it goes). A command is published on each setpoint
 and, once a setpoint came, every 1/rate_hz s (which also feeds the stage's watchdog): computed again in
 feedback mode or with a lag or drift in the model, the last one repeated otherwise. The control period
 1/rate_hz is counted on the node clock with use_sim_time (simulated seconds: the loop acts on the period
@@ -128,8 +130,8 @@ COMPENSATOR_PARAMS = [
           "the lag the lead leaves later (Compensator.preview_s), the loop's error against the setpoint now; false: "
           "the setpoint now only"),
     Param("learning_period", 0.0, "the setpoint repeats with this period [s of stage time]: with feedback, a correction "
-          "learnt from each period's error is added to the next (iterative learning; it begins again when this or the "
-          "model changes, or enabled turns true); 0: off", 0.0, 1e6),
+          "learnt from each period's error is added to the next (iterative learning; it begins when the setpoint first "
+          "moves after this or the model changed, or enabled turned true); 0: off", 0.0, 1e6),
     Param("control_trigger", "timer", "when the loop computes a command: 'timer' (rate_hz, and at once on a new "
           "setpoint) or 'joint_states' (once for each position the stage publishes, at its stamp: the loop in step "
           "with the stage, as a simulated stage many times faster than the wall clock needs)", read_only=True),
