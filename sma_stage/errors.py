@@ -19,3 +19,11 @@ def finite_number(name: str, value: object) -> float:
     if not math.isfinite(number):
         raise InputError(f"{name} must be finite, got {value!r}")
     return number
+
+
+def non_negative_number(name: str, value: object) -> float:
+    """value as a float; InputError naming `name` unless it is a finite number >= 0."""
+    number = finite_number(name, value)
+    if number < 0.0:
+        raise InputError(f"{name} must be at least 0, got {value!r}")
+    return number

@@ -166,7 +166,7 @@ import math
 
 from sma_stage.control.drives import Drive, dead_band_a, drive_for, model_tau_s, reach_span_m
 from sma_stage.control.learning import RESOLUTION_S, PeriodicLearning, checked_period_s, learning_lag_s
-from sma_stage.errors import InputError, finite_number
+from sma_stage.errors import InputError, finite_number, non_negative_number
 from sma_stage.model.effects import lag_drive_for, lag_step
 from sma_stage.model.kinds import AnyModel, StreamModel
 
@@ -187,13 +187,6 @@ def compensation_notes(model: AnyModel) -> dict[str, str]:
         return {model.kind: "inverted exactly: the current that, held over the lead limit's horizon, brings the "
                             "model's output to the target through its heating lag"}
     return {kind: COMPENSATION[kind] for kind in model.effect_names}
-
-
-def _non_negative(name: str, value: float) -> float:
-    number = finite_number(name, value)
-    if number < 0.0:
-        raise InputError(f"{name} must be at least 0, got {value!r}")
-    return number
 
 
 DEFAULT_LEAD_LIMIT = 3.0
@@ -222,7 +215,7 @@ def _wire(current_a: float) -> int:
 
 def checked_gains(kp: float, ki: float) -> dict[str, float]:
     """The loop's gains (kp [m/m], ki [1/s]) as floats; InputError unless each is finite and >= 0."""
-    return {name: _non_negative(name, value) for name, value in {"kp": kp, "ki": ki}.items()}
+    return {name: non_negative_number(name, value) for name, value in {"kp": kp, "ki": ki}.items()}
 
 
 def slew_time_s(max_current_a: float, max_rate_a_per_s: float) -> float:
@@ -242,11 +235,11 @@ def imc_gains(model: AnyModel, control_period_s: float, lead_limit: float = DEFA
     a loop asked to close faster than the rate limit lets the current move winds its integral up against the
     slew; bench/results/positioning.md: on a stage whose model has a 0.25 s lag the loop was 2.6 times worse
     than feedforward); kp = tau_c / (lambda + theta), ki = 1 / (lambda + theta)."""
-    period = _non_negative("control_period_s", control_period_s)
+    period = non_negative_number("control_period_s", control_period_s)
     if period == 0.0:
         raise InputError("control_period_s must be above 0")
     lag_left = model_tau_s(model) / max(lead_limit, 1.0)
-    closed_loop = max(LAMBDA_FRACTION * lag_left, _non_negative("slew_s", slew_s))
+    closed_loop = max(LAMBDA_FRACTION * lag_left, non_negative_number("slew_s", slew_s))
     return {"kp": lag_left / (closed_loop + period), "ki": 1.0 / (closed_loop + period)}
 
 
@@ -358,7 +351,7 @@ class Compensator:
             raise InputError(f"model must be a GPI, a two-wire or a Bouc-Wen model, got {type(model).__name__}")
         if model.output_unit != "m":
             raise InputError(f"the model's output unit is '{model.output_unit}'; the setpoint is in m")
-        limit = _non_negative("max_current_a", self._limit if max_current_a is None else max_current_a)
+        limit = non_negative_number("max_current_a", self._limit if max_current_a is None else max_current_a)
         if limit == 0.0:
             raise InputError("max_current_a must be above 0")
         method = self._method if method is None else method
@@ -471,10 +464,10 @@ class Compensator:
         from now, when the caller knows it: the inverse is driven towards it, the loop's error stays against
         setpoint_m (see the module's docstring)."""
         now = self._bounded(finite_number("setpoint_m", setpoint_m))
-        dt = _non_negative("dt_s", dt_s)
+        dt = non_negative_number("dt_s", dt_s)
         measured = None if measured_m is None else self._bounded(finite_number("measured_m", measured_m))
         if hold_s is not None:
-            self._hold_s = _non_negative("hold_s", hold_s)
+            self._hold_s = non_negative_number("hold_s", hold_s)
         elif dt > 0.0:
             self._hold_s = dt
         ahead = None if ahead_m is None else self._bounded(finite_number("ahead_m", ahead_m))
@@ -665,7 +658,7 @@ class Compensator:
         with the lag's new state, the drift's time; so that the next command starts where the stage is.
         The loop starts again (integral 0)."""
         current = finite_number("current_a", current_a)
-        dt = _non_negative("dt_s", dt_s)
+        dt = non_negative_number("dt_s", dt_s)
         self.drive.follow_applied(current, dt)
         self.command_a = current
         self._relay_side = _wire(current) or self._relay_side

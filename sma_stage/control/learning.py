@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from sma_stage.errors import InputError, finite_number
+from sma_stage.errors import InputError, finite_number, non_negative_number
 
 DEFAULT_GAIN = 0.5
 DEFAULT_SMOOTHING_S = 1.0
@@ -58,13 +58,6 @@ def _centred_mean(values: np.ndarray, width: int) -> np.ndarray:
     return np.convolve(padded, np.ones(2 * half + 1) / (2 * half + 1), mode="valid")
 
 
-def _at_least(name: str, value: float, minimum: float) -> float:
-    number = finite_number(name, value)
-    if number < minimum:
-        raise InputError(f"{name} must be at least {minimum:g}, got {value!r}")
-    return number
-
-
 class PeriodicLearning:
     """The correction [m] for a setpoint that repeats every period_s [s] (see the module's docstring): `record`
     each measured error with the time [s] since the learning began, `correction_m` at any time."""
@@ -80,11 +73,11 @@ class PeriodicLearning:
         self.gain = finite_number("gain", gain)
         if not 0.0 < self.gain <= 1.0:
             raise InputError(f"gain must be above 0 and at most 1, got {gain!r}")
-        self.limit_m = _at_least("limit_m", limit_m, 0.0)
+        self.limit_m = non_negative_number("limit_m", limit_m)
         bins = round(self.period_s / resolution)
         self.resolution_s = self.period_s / bins
-        self.lag_bins = min(round(_at_least("lag_s", lag_s, 0.0) / self.resolution_s), bins - 1)
-        self.smoothing_bins = 2 * round(0.5 * _at_least("smoothing_s", smoothing_s, 0.0) / self.resolution_s) + 1
+        self.lag_bins = min(round(non_negative_number("lag_s", lag_s) / self.resolution_s), bins - 1)
+        self.smoothing_bins = 2 * round(0.5 * non_negative_number("smoothing_s", smoothing_s) / self.resolution_s) + 1
         self.correction = np.zeros(bins)  # at each bin's start
         self._sums, self._counts = np.zeros(bins), np.zeros(bins, dtype=int)
         self._period = 0  # the period now, counted from 0
