@@ -124,15 +124,15 @@ sine's changes the current by at most the rate limit's 4 % per step, `prestraine
 
 A setpoint that repeats (`learning_period_s` above 0, with a measurement): the setpoint now and the one ahead get
 a correction learnt from the errors at the same phase of the periods before (iterative learning:
-sma_stage.control.learning.PeriodicLearning, its lag a third of the model's tau, its bins the control period's
-hold or 0.2 s if longer, its correction within LEARNING_LIMIT_FRACTION of the reach span), and the inverse and the loop follow the corrected setpoint. What the
-model misses at each hand-over between the wires repeats period after period (bench/README.md, positioning), and the
-loop corrects it only once it has happened; the learning corrects it ahead. A setpoint that holds keeps the
-correction it had (a held level's loop below sees a held setpoint). The learning begins when the setpoint first moves
-(a command with a measurement and a hold, a dt or hold_s above 0, whose setpoint differs from the one before) after
-its period was set or the compensator reset (a new model, `set_model`): a setpoint held before the repeated one
-starts is not taken for part of its period. Figures:
-bench/bench_learning.py (bench/README.md, learning).
+sma_stage.control.learning.PeriodicLearning, its lag a third of the model's tau, its bins 0.2 s or the control
+period's hold when longer, its correction within LEARNING_LIMIT_FRACTION of the reach span), and the inverse and
+the loop follow the corrected setpoint. What the model misses at each hand-over between the wires repeats period
+after period (bench/README.md, positioning), and the loop corrects it only once it has happened; the learning
+corrects it ahead. A setpoint that holds keeps the correction it had (a held level's loop below sees a held
+setpoint). The learning begins when the setpoint first moves (a command with a measurement and a hold, a dt or
+hold_s above 0, whose setpoint differs from the one before) after its period was set or the compensator reset (a
+new model, `set_model`): a setpoint held before the repeated one starts is not taken for part of its period.
+Figures: bench/bench_learning.py and bench/bench_learning_nodes.py (bench/README.md, learning).
 
 Each effect of the IdentifiedModel is stepped with the code identification fitted it with
 (sma_stage.model.effects):
