@@ -1,10 +1,11 @@
-"""Learning a repeated setpoint (sma_stage.control.learning.PeriodicLearning) on the positioning bench's plants: each
-plant identified as bench/bench_positioning.py does (the paper's identification record, every family), then driven
-by the PI loop with the preview through a setpoint that repeats (sines of 20, 50, 100 and 250 s period over 70 % of the
-stroke, and the paper's validation shape forwards and back, over and over), without and with the learning. The table gives the RMS
-error [% of the stroke] of the first and the last period, the best period's, the last period's max, how many
-periods were within 1 %, and the current's p99 change from one command to the next over the whole run (% of the
-5 A limit: a learning that chatters cannot win). Writes bench/results/learning.md (--out).
+"""Learning a repeated setpoint (sma_stage.control.learning.PeriodicLearning) on the positioning bench's plants:
+each plant identified as bench/bench_positioning.py does (the paper's identification record, every family), then
+driven by the PI loop with the preview through a setpoint that repeats (sines of 20, 50, 100 and 250 s period over
+70 % of the stroke, and the paper's validation shape forwards and back, over and over), without and with the
+learning. The table gives the RMS error [% of the stroke] of the first and the last period, the best period's, the
+last period's max, how many periods were within 1 %, and the current's p99 change from one command to the next over
+the whole run (% of the 5 A limit: a learning that chatters cannot win); then, per shape, the ranges over the
+plants. Writes bench/results/learning.md (--out).
 
     .venv/bin/python bench/bench_learning.py [--plants simulator,nominal,...] [--seed 0] [--out FILE]
 """
