@@ -113,7 +113,7 @@ def main() -> None:
     args = parser.parse_args()
     started = time.perf_counter()
     lines = ["| learning_period [s] | nodes: RMS % of the span, first / last / best period | periods within 1 % | "
-             "in process: the same | |", "|---|---|---|---|---|"]
+             "in process: the same | periods within 1 % |", "|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     with tempfile.TemporaryDirectory() as scratch:
         for index, learning in enumerate((0.0, PERIOD_S)):
