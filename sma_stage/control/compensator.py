@@ -399,11 +399,11 @@ class Compensator:
 
     @property
     def learning(self) -> PeriodicLearning | None:
-        """The learning in force (None: none, or before the first command with a measurement)."""
+        """The learning in force (None: none, or before the setpoint first moved with a measurement)."""
         return self._learning
 
     def _restart_learning(self) -> None:
-        """No correction learnt; the learning's period begins at the next command with a measurement."""
+        """No correction learnt; the learning's period begins when the setpoint next moves (see `_corrected`)."""
         self._learning: PeriodicLearning | None = None
         self._learning_s = 0.0  # since the learning began [s]
         self._learnt: tuple[float, float, float, float] | None = None  # (setpoint, its correction, ahead, its) [m]
