@@ -1,7 +1,10 @@
 """Positioning stages the control law was not tuned on: each plant identified by the package from the paper's
 identification record (the family `diagnose` chooses, as `gpi_tool diagnose` does), then driven by
 sma_stage.control.Compensator through setpoints of several shapes: feedforward and with the PI loop, each without
-and with a preview (the setpoint Compensator.preview_s() ahead, as a stamped stream sent early gives the node).
+and with a preview (the setpoint Compensator.preview_s() ahead, as a stamped stream sent early gives the node), and
+the PI loop with the preview told a sine's period (Compensator.learning_period_s: it learns the error that repeats;
+scored over the whole shape as every mode, its first periods included; a shape that does not repeat runs it as the
+PI loop with the preview).
 Prints one table and writes it to bench/results/positioning.md (--out), with how fast the full current crosses
 the setpoints' band on each plant (no law crosses it faster) and, over the plants, each shape's and mode's RMS range
 and how many plants are within issue 49's targets.
@@ -78,6 +81,7 @@ RECORDS = ("paper", "designed")
 MAX_CURRENT_A = 5.0
 STROKE_FRACTION = 0.7
 LEAD_IN_S = 60.0
+SINE_PERIODS_S = (20.0, 50.0, 100.0, 250.0)
 HOLD_S, SETTLED_S, HOLDS, LEVEL_DRAWS = 60.0, 20.0, 8, 3
 LOOP_TARGET_PCT, FEEDFORWARD_TARGET_PCT, HELD_TARGET_PCT, CHANGE_TARGET_PCT = 1.0, 3.0, 0.2, 5.0  # issue 49's targets
 NEW_VARIANTS = {
@@ -91,6 +95,8 @@ PLANTS = ["simulator", *physical.VARIANTS, *NEW_VARIANTS]
 
 class SimulatorPlant:
     """The package's stage simulator; a record's sample k holds the position after its current was applied."""
+
+    SAMPLE_AFTER_CURRENT = True
 
     def __init__(self, seed: int) -> None:
         self.stage = StageSimulator(seed=seed)
@@ -106,6 +112,8 @@ class SimulatorPlant:
 class PhysicalPlant:
     """test/antagonistic_plant.py's stage, settled at zero current; a record's sample k holds the position when its
     current starts (as that module records); noise NOISE_PCT % of the identification record's span."""
+
+    SAMPLE_AFTER_CURRENT = False
 
     def __init__(self, stage: physical.Stage, seed: int) -> None:
         self.plant = physical.AntagonisticStage(stage)
@@ -197,11 +205,16 @@ def shapes(seed: int) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     draws = [np.random.default_rng(seed + 7 + draw).uniform(-1.0, 1.0, HOLDS) for draw in range(LEVEL_DRAWS)]
     held = {f"held levels {draw + 1}": (lambda s, levels=levels: levels[np.minimum((s // HOLD_S).astype(int), HOLDS - 1)])
             for draw, levels in enumerate(draws)}
-    sines = {f"sine {period:g} s": (lambda s, p=period: np.sin(2.0 * np.pi * s / p)) for period in (20, 50, 100, 250)}
+    sines = {f"sine {period:g} s": (lambda s, p=period: np.sin(2.0 * np.pi * s / p)) for period in SINE_PERIODS_S}
     return {**sines,
             "paper's validation": lambda s: physical.paper_validation(s) / 5.0,
             **held,
             "slow ramp": lambda s: 1.0 - 2.0 * np.abs(s / 300.0 - 1.0)}
+
+
+def repeat_period_s(shape: str) -> float:
+    """The shape's period [s] where it repeats within its duration (the sines), else 0."""
+    return next((period for period in SINE_PERIODS_S if shape == f"sine {period:g} s"), 0.0)
 
 
 def duration_s(shape: str) -> float:
@@ -217,19 +230,23 @@ class Tracked:
     change_p99_pct: float
     settled_mean_pct: float | None = None
     settled_max_pct: float | None = None
+    model_rms_pct: float = float("nan")  # the model's own RMS error on the currents the plant was given
 
 
 @dataclass(frozen=True)
 class Mode:
-    """How the compensator is run: with the PI loop (feedback) or not, given the setpoint preview_s ahead or not."""
+    """How the compensator is run: with the PI loop (feedback) or not, given the setpoint preview_s ahead or not, and
+    told the period of a setpoint that repeats (learning: Compensator.learning_period_s, the shape's repeat_period_s)."""
 
     name: str
     feedback: bool
     preview: bool
+    learning: bool = False
 
 
 MODES = [Mode("feedforward", False, False), Mode("feedforward, preview", False, True),
-         Mode("PI loop", True, False), Mode("PI loop, preview", True, True)]
+         Mode("PI loop", True, False), Mode("PI loop, preview", True, True),
+         Mode("PI loop, preview, learning", True, True, True)]
 
 
 def drive(identified: Identified, form: Callable[[np.ndarray], np.ndarray], mode: Mode, seconds: float,
@@ -265,7 +282,8 @@ def drive(identified: Identified, form: Callable[[np.ndarray], np.ndarray], mode
 
 def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.ndarray], mode: Mode) -> Tracked:
     """`drive` through one shape for its duration_s, scored (see the module's docstring)."""
-    positions, currents, wanted = drive(identified, form, mode, duration_s(shape))
+    learning_period = repeat_period_s(shape) if mode.learning else 0.0
+    positions, currents, wanted = drive(identified, form, mode, duration_s(shape), learning_period)
     low, high = identified.stroke_m
     span = high - low
     lead_in = int(LEAD_IN_S / PERIOD_S)
@@ -273,13 +291,30 @@ def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.nd
     scored = slice(lead_in, None)
     error = 100.0 * (positions - wanted[1:steps + 1])[scored] / span
     change = 100.0 * np.abs(np.diff(currents[lead_in - 1:])) / MAX_CURRENT_A
-    result = Tracked(float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error))), float(np.percentile(change, 99)))
+    result = Tracked(float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error))), float(np.percentile(change, 99)),
+                     model_rms_pct=model_miss_pct(identified, positions, currents))
     if not shape.startswith("held levels"):
         return result
     per_hold, settled_n = int(HOLD_S / PERIOD_S), int(SETTLED_S / PERIOD_S)
     ends = [(hold + 1) * per_hold - 1 for hold in range(HOLDS)]  # error[j] is the position against setpoint j + 1
     settled = [abs(float(np.mean(error[end - settled_n:end]))) for end in ends]
     return replace(result, settled_mean_pct=float(np.mean(settled)), settled_max_pct=float(np.max(settled)))
+
+
+def model_miss_pct(identified: Identified, positions: np.ndarray, currents: np.ndarray) -> float:
+    """The identified model's RMS error [% of the stroke] on the scored positions [m] of a `drive`, the model run from
+    its carried state on the currents [A] the plant was given (the compensator's first, then `currents`), each
+    sample read as the plant's own records are (SAMPLE_AFTER_CURRENT): what the model gets wrong of the stage on that
+    drive, whatever the law."""
+    model = identified.model
+    applied = np.r_[Compensator(model, MAX_CURRENT_A).drive.initial_current(), currents]
+    times = model.state.time_s + PERIOD_S * np.arange(1, applied.size + 1)
+    predicted = model.predict(times, applied, model.state)
+    offset = 1 if identified.plant.SAMPLE_AFTER_CURRENT else 2  # positions[k] against predicted[k + offset]
+    scored = slice(int(LEAD_IN_S / PERIOD_S), applied.size - offset)
+    low, high = identified.stroke_m
+    miss = positions[scored] - predicted[scored.start + offset:]
+    return float(100.0 * np.sqrt(np.mean(miss**2)) / (high - low))
 
 
 def held_at(plant: SimulatorPlant | PhysicalPlant, current_a: float, position_m: float,
@@ -364,7 +399,13 @@ def rows(name: str, identified: Identified, seed: int, found: dict[str, list[Tra
     found)."""
     lines = []
     for shape, form in shapes(seed).items():
-        runs = found[shape] = [track(identified, shape, form, mode) for mode in MODES]
+        by_law: dict[tuple[bool, bool, bool], Tracked] = {}  # a shape with no period: learning runs as without it
+        for mode in MODES:
+            law = (mode.feedback, mode.preview, mode.learning and repeat_period_s(shape) > 0.0)
+            if law not in by_law:
+                by_law[law] = track(identified, shape, form, mode)
+        runs = found[shape] = [by_law[(mode.feedback, mode.preview, mode.learning and repeat_period_s(shape) > 0.0)]
+                               for mode in MODES]
         errors = "; ".join(f"{run.rms_pct:.2f} / {run.max_pct:.1f}" for run in runs)
         settled = "" if runs[0].settled_mean_pct is None else "; ".join(
             f"{run.settled_mean_pct:.2f} / {run.settled_max_pct:.2f}" for run in runs)
@@ -410,11 +451,23 @@ def summary(found: dict[str, dict[str, list[Tracked]]]) -> list[str]:
     return lines
 
 
+def model_misses(found: dict[str, dict[str, list[Tracked]]], mode_name: str = "PI loop, preview") -> list[str]:
+    """Per plant, for each moving shape in one mode: its RMS error and the model's own RMS error on the same drive
+    (Tracked.model_rms_pct) [% of the stroke]."""
+    index = [mode.name for mode in MODES].index(mode_name)
+    moving = [shape for shape in next(iter(found.values())) if not shape.startswith("held levels")]
+    lines = ["| plant | " + " | ".join(moving) + " |", "|---|" + "---|" * len(moving)]
+    for plant, by_shape in found.items():
+        lines.append(f"| {plant} | " + " | ".join(f"{by_shape[shape][index].rms_pct:.2f} / "
+                                                    f"{by_shape[shape][index].model_rms_pct:.2f}" for shape in moving) + " |")
+    return lines
+
+
 def reversal_scan(names: list[str], seed: int, speeds: list[float]) -> list[str]:
     """Held levels in the PI loop, without and with the preview, at each REVERSAL_SPEED: per plant and draw, the
     settled mean / max [%] and the p99 current change [%], then the worst hold and the draws whose every hold
     settled within 0.2 % (of all, per speed), and the mean of the draws' settled means."""
-    loops = [mode for mode in MODES if mode.feedback]
+    loops = [mode for mode in MODES if mode.feedback and not mode.learning]
     lines = ["| plant | setpoint | " + " | ".join(f"reversal speed {speed:g}: settled mean / max %, p99 change %: "
                                                   + "; ".join(mode.name for mode in loops) for speed in speeds) + " |",
              "|---|---|" + "---|" * len(speeds)]
@@ -501,6 +554,8 @@ def main() -> None:
     print("\n".join(traverse))
     against = summary(tracked)
     print("\n".join(against))
+    misses = model_misses(tracked)
+    print("\n".join(misses))
     levels = " --validate-levels" if args.validate_levels else ""
     note = run_note(f"--plants {args.plants} --seed {args.seed} --record {args.record}{levels}", started)
     designed = args.record == "designed"
@@ -513,7 +568,9 @@ def main() -> None:
           "targets (RMS within 1 % with the PI loop, 3 % in feedforward; held levels: every hold settled within "
           "0.2 %):\n\n" + "\n".join(against) + "\n\n" + "The full current's crossing of the setpoints' band (no law crosses it faster), "
           "and what a hand-over costs (hand_over, stall_floor_pct; drop or dead NaN: not within 60 s, no stall "
-          "counted):\n\n" + "\n".join(traverse) + "\n\n" + note + "\n")
+          "counted):\n\n" + "\n".join(traverse) + "\n\nThe PI loop with the preview, RMS error / the model's own RMS "
+          "error on the currents the loop gave the plant (model_miss_pct) [% of the stroke]: what no law that trusts "
+          "the model can lead, and the loop must close:\n\n" + "\n".join(misses) + "\n\n" + note + "\n")
     print(note)
 
 
