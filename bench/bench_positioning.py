@@ -17,6 +17,11 @@ With --record designed, each plant is identified instead from what `gpi_tool exc
 would run on it (a 100 s probe, then the design from it drawn with the seed; 1000 s in all), the setpoints still
 over 70 % of the stroke the paper's record reached (bench/results/positioning_designed.md).
 
+With --record paper+tracking, each plant is identified from the paper's record, then the loop with the preview tracks a
+70 s sine over 70 % of the stroke for 500 s with that model (a shape the table does not score), and the plant is
+identified again on both records, 1560 s in all, as a user would refit on what the stage recorded while it positioned
+(bench/results/positioning_tracking.md).
+
 With --validate-levels, each identification is also validated on held random levels (what `gpi_tool excitation
 levels --seed N` writes, N the bench's seed, run from the plant's own settled stage), the family, the effects and the
 two-wire model's start and tension coupling chosen on the record each predicts worst, as docs/experiment.md tells a
@@ -48,6 +53,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -77,7 +83,8 @@ from sma_stage.signals import held_levels_signal  # noqa: E402
 PERIOD_S = 0.2
 RECORD_S = 1000.0
 PROBE_S = probe_duration_s(RECORD_S)  # of the designed record, the package's default share (100 s)
-RECORDS = ("paper", "designed")
+RECORDS = ("paper", "designed", "paper+tracking")
+TRACKING_PERIOD_S, TRACKING_S = 70.0, 500.0  # paper+tracking: the loop's sine then recorded (no shape of the table)
 MAX_CURRENT_A = 5.0
 STROKE_FRACTION = 0.7
 LEAD_IN_S = 60.0
@@ -101,7 +108,7 @@ class SimulatorPlant:
     def __init__(self, seed: int) -> None:
         self.stage = StageSimulator(seed=seed)
 
-    def record(self, current: np.ndarray) -> np.ndarray:
+    def record(self, current: np.ndarray, set_noise: bool = True) -> np.ndarray:  # noqa: ARG002 -- its own noise
         return np.array([self.step(value) for value in current])
 
     def step(self, current_a: float) -> float:
@@ -126,12 +133,15 @@ class PhysicalPlant:
         for _ in range(physical.SUBSTEPS):
             self.plant.step(current_a, PERIOD_S / physical.SUBSTEPS)
 
-    def record(self, current: np.ndarray) -> np.ndarray:
+    def record(self, current: np.ndarray, set_noise: bool = True) -> np.ndarray:
+        """The positions [m] as the current [A] runs (noise from this record's span, or with set_noise False the
+        noise of the record before)."""
         positions = np.empty(current.size)
         for k, value in enumerate(current):
             positions[k] = self.plant.position_m
             self._advance(float(value))
-        self.noise_m = physical.NOISE_PCT / 100.0 * float(np.ptp(positions))
+        if set_noise:
+            self.noise_m = physical.NOISE_PCT / 100.0 * float(np.ptp(positions))
         return positions + self.rng.normal(0.0, self.noise_m, positions.size)
 
     def step(self, current_a: float) -> float:
@@ -162,8 +172,9 @@ def identify(name: str, seed: int, record: str = "paper", levels: bool = False) 
     """Run the plant through its identification record and identify it (every family, 4 rounds, as `gpi_tool
     diagnose` does); the validation record (the paper's) runs on a fresh plant of the same kind, and with `levels`
     held random levels (held_levels_signal drawn with the seed) on another. record: "paper" (the paper's decaying
-    sine) or "designed" (designed_run). The stroke is what the paper's record reached in either case, so that every
-    table tracks the same setpoints."""
+    sine) or "designed" (designed_run), or "paper+tracking" (tracking_run: the paper's record, then the loop with
+    the preview tracking a sine with the model from it, identified again on both). The stroke is what the paper's
+    record reached in every case, so that every table tracks the same setpoints."""
     started = time.perf_counter()
     t = PERIOD_S * np.arange(int(RECORD_S / PERIOD_S))
     plant = make_plant(name, seed)
@@ -173,19 +184,35 @@ def identify(name: str, seed: int, record: str = "paper", levels: bool = False) 
         plant = make_plant(name, seed)
         current, y_ident = designed_run(plant, seed)
     y_valid = make_plant(name, seed + 1).record(physical.paper_validation(t))
+    valid = make_series(t, physical.paper_validation(t), y_valid, "validation")
     more = []
     if levels:
         held = held_levels_signal(t, MAX_CURRENT_A, seed=seed)
         more.append(make_series(t, held, make_plant(name, seed + 2).record(held), "held levels"))
-    found = identify_recording(make_series(t, current, y_ident, "identification"),
-                               make_series(t, physical.paper_validation(t), y_valid, "validation"),
-                               diagnose_rounds=4, workers=2, families=FAMILIES, more_validation=more)
+    ident = make_series(t, current, y_ident, "identification")
+    found = identify_recording(ident, valid, diagnose_rounds=4, workers=2, families=FAMILIES, more_validation=more)
+    stroke = (float(paper_y.min()), float(paper_y.max()))
+    if record == "paper+tracking":
+        first = Identified(plant, found.model, "", math.nan, stroke, 0.0)
+        tracked = tracking_run(first)
+        both = np.r_[current, tracked]
+        ident = make_series(PERIOD_S * np.arange(both.size), both, np.r_[y_ident, plant.record(tracked, False)],
+                            "identification and tracking")
+        found = identify_recording(ident, valid, diagnose_rounds=4, workers=2, families=FAMILIES, more_validation=more)
     rows = found.report.get("families") or []
     chosen = [row for row in rows if row["chosen"]]
-    valid = chosen[0]["validation"]["rms_pct"] if chosen else found.report["validation"]["rms_pct"]
+    valid_rms = chosen[0]["validation"]["rms_pct"] if chosen else found.report["validation"]["rms_pct"]
     described = chosen[0]["model"] if chosen else "gpi"
-    return Identified(plant, found.model, described, valid, (float(paper_y.min()), float(paper_y.max())),
-                      time.perf_counter() - started)
+    return Identified(plant, found.model, described, valid_rms, stroke, time.perf_counter() - started)
+
+
+def tracking_run(identified: Identified) -> np.ndarray:
+    """The currents [A] the loop with the preview gives a copy of the plant tracking a sine of TRACKING_PERIOD_S for
+    TRACKING_S after the lead-in (`drive`; the compensator's first current first): what a user records while
+    positioning, to identify again on."""
+    mode = Mode("PI loop, preview", True, True)
+    _, currents, _ = drive(identified, lambda s: np.sin(2.0 * np.pi * s / TRACKING_PERIOD_S), mode, TRACKING_S)
+    return np.r_[Compensator(identified.model, MAX_CURRENT_A).drive.initial_current(), currents]
 
 
 def designed_run(plant: SimulatorPlant | PhysicalPlant, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -559,10 +586,13 @@ def main() -> None:
     levels = " --validate-levels" if args.validate_levels else ""
     note = run_note(f"--plants {args.plants} --seed {args.seed} --record {args.record}{levels}", started)
     designed = args.record == "designed"
-    default_out = ("positioning_designed" if designed else "positioning") + ("_levels" if levels else "") + ".md"
+    default_out = ({"designed": "positioning_designed", "paper+tracking": "positioning_tracking"}.get(
+        args.record, "positioning") + ("_levels" if levels else "") + ".md")
     write(Path(args.out or REPO / "bench" / "results" / default_out),
           "Positioning stages the control law was not tuned on"
           + (", each identified from the probe and the designed excitation" if designed else "")
+          + (", each identified again with a record of the loop tracking a sine" if args.record == "paper+tracking"
+             else "")
           + (", validated on held random levels too" if levels else ""),
           "\n".join(table) + "\n\nOver the plants: the RMS range [% of the stroke] and the plants within issue 49's "
           "targets (RMS within 1 % with the PI loop, 3 % in feedforward; held levels: every hold settled within "
