@@ -158,7 +158,8 @@ def make_plant(name: str, seed: int) -> SimulatorPlant | PhysicalPlant:
 
 @dataclass
 class Identified:
-    """A plant after its identification record, the model the package chose, and the stroke it reached [m]."""
+    """A plant after its identification record, the model the package chose, the stroke it reached [m] and the time of
+    the record's last sample [s] (where the model's carried state is)."""
 
     plant: SimulatorPlant | PhysicalPlant
     model: AnyModel
@@ -166,6 +167,7 @@ class Identified:
     validation_rms_pct: float
     stroke_m: tuple[float, float]
     seconds: float
+    record_end_s: float
 
 
 def identify(name: str, seed: int, record: str = "paper", levels: bool = False) -> Identified:
@@ -193,7 +195,7 @@ def identify(name: str, seed: int, record: str = "paper", levels: bool = False) 
     found = identify_recording(ident, valid, diagnose_rounds=4, workers=2, families=FAMILIES, more_validation=more)
     stroke = (float(paper_y.min()), float(paper_y.max()))
     if record == "paper+tracking":
-        first = Identified(plant, found.model, "", math.nan, stroke, 0.0)
+        first = Identified(plant, found.model, "", math.nan, stroke, 0.0, float(ident.t[-1]))
         tracked = tracking_run(first)
         both = np.r_[current, tracked]
         ident = make_series(PERIOD_S * np.arange(both.size), both, np.r_[y_ident, plant.record(tracked, False)],
@@ -203,7 +205,8 @@ def identify(name: str, seed: int, record: str = "paper", levels: bool = False) 
     chosen = [row for row in rows if row["chosen"]]
     valid_rms = chosen[0]["validation"]["rms_pct"] if chosen else found.report["validation"]["rms_pct"]
     described = chosen[0]["model"] if chosen else "gpi"
-    return Identified(plant, found.model, described, valid_rms, stroke, time.perf_counter() - started)
+    return Identified(plant, found.model, described, valid_rms, stroke, time.perf_counter() - started,
+                      float(ident.t[-1]))
 
 
 def tracking_run(identified: Identified) -> np.ndarray:
@@ -212,6 +215,12 @@ def tracking_run(identified: Identified) -> np.ndarray:
     positioning, to identify again on."""
     mode = Mode("PI loop, preview", True, True)
     _, currents, _ = drive(identified, lambda s: np.sin(2.0 * np.pi * s / TRACKING_PERIOD_S), mode, TRACKING_S)
+    return applied_currents(identified, currents)
+
+
+def applied_currents(identified: Identified, currents: np.ndarray) -> np.ndarray:
+    """Every current [A] a `drive` applied to the plant: the compensator's first (before its first command), then
+    the commands."""
     return np.r_[Compensator(identified.model, MAX_CURRENT_A).drive.initial_current(), currents]
 
 
@@ -334,8 +343,8 @@ def model_miss_pct(identified: Identified, positions: np.ndarray, currents: np.n
     sample read as the plant's own records are (SAMPLE_AFTER_CURRENT): what the model gets wrong of the stage on that
     drive, whatever the law."""
     model = identified.model
-    applied = np.r_[Compensator(model, MAX_CURRENT_A).drive.initial_current(), currents]
-    times = model.state.time_s + PERIOD_S * np.arange(1, applied.size + 1)
+    applied = applied_currents(identified, currents)
+    times = identified.record_end_s + PERIOD_S * np.arange(1, applied.size + 1)
     predicted = model.predict(times, applied, model.state)
     offset = 1 if identified.plant.SAMPLE_AFTER_CURRENT else 2  # positions[k] against predicted[k + offset]
     scored = slice(int(LEAD_IN_S / PERIOD_S), applied.size - offset)
@@ -421,6 +430,12 @@ HEADER = ("| plant | model (held-out RMS %) | setpoint | RMS / max %: " + "; ".j
           + " | settled mean / max %: same order | p99 current change %: same order |\n|---|---|---|---|---|---|")
 
 
+def law(mode: Mode, shape: str) -> tuple[bool, bool, bool]:
+    """What the compensator runs in a mode on a shape: (the loop, the preview, learning), learning only where the
+    shape repeats."""
+    return mode.feedback, mode.preview, mode.learning and repeat_period_s(shape) > 0.0
+
+
 def rows(name: str, identified: Identified, seed: int, found: dict[str, list[Tracked]]) -> list[str]:
     """The table's rows of one plant: each shape, in every mode (each shape's runs, in MODES' order, also added to
     found)."""
@@ -428,11 +443,9 @@ def rows(name: str, identified: Identified, seed: int, found: dict[str, list[Tra
     for shape, form in shapes(seed).items():
         by_law: dict[tuple[bool, bool, bool], Tracked] = {}  # a shape with no period: learning runs as without it
         for mode in MODES:
-            law = (mode.feedback, mode.preview, mode.learning and repeat_period_s(shape) > 0.0)
-            if law not in by_law:
-                by_law[law] = track(identified, shape, form, mode)
-        runs = found[shape] = [by_law[(mode.feedback, mode.preview, mode.learning and repeat_period_s(shape) > 0.0)]
-                               for mode in MODES]
+            if law(mode, shape) not in by_law:
+                by_law[law(mode, shape)] = track(identified, shape, form, mode)
+        runs = found[shape] = [by_law[law(mode, shape)] for mode in MODES]
         errors = "; ".join(f"{run.rms_pct:.2f} / {run.max_pct:.1f}" for run in runs)
         settled = "" if runs[0].settled_mean_pct is None else "; ".join(
             f"{run.settled_mean_pct:.2f} / {run.settled_max_pct:.2f}" for run in runs)
