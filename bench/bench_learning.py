@@ -35,7 +35,7 @@ REPEATED = {  # shape: (period [s], periods run)
     "sine 250 s": (250.0, 4),
     "paper's validation, there and back": (2.0 * PAPER_S, 3),
 }
-MODE = positioning.Mode("PI loop, preview", True, True)
+MODE = positioning.LOOP_PREVIEW
 
 
 def form_of(shape: str) -> Callable[[np.ndarray], np.ndarray]:

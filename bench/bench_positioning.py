@@ -213,8 +213,8 @@ def tracking_run(identified: Identified) -> np.ndarray:
     """The currents [A] the loop with the preview gives a copy of the plant tracking a sine of TRACKING_PERIOD_S for
     TRACKING_S after the lead-in (`drive`; the compensator's first current first): what a user records while
     positioning, to identify again on."""
-    mode = Mode("PI loop, preview", True, True)
-    _, currents, _ = drive(identified, lambda s: np.sin(2.0 * np.pi * s / TRACKING_PERIOD_S), mode, TRACKING_S)
+    _, currents, _ = drive(identified, lambda s: np.sin(2.0 * np.pi * s / TRACKING_PERIOD_S), LOOP_PREVIEW,
+                           TRACKING_S)
     return applied_currents(identified, currents)
 
 
@@ -280,9 +280,9 @@ class Mode:
     learning: bool = False
 
 
+LOOP_PREVIEW = Mode("PI loop, preview", True, True)  # the law the node runs by default
 MODES = [Mode("feedforward", False, False), Mode("feedforward, preview", False, True),
-         Mode("PI loop", True, False), Mode("PI loop, preview", True, True),
-         Mode("PI loop, preview, learning", True, True, True)]
+         Mode("PI loop", True, False), LOOP_PREVIEW, Mode("PI loop, preview, learning", True, True, True)]
 
 
 def drive(identified: Identified, form: Callable[[np.ndarray], np.ndarray], mode: Mode, seconds: float,
@@ -491,10 +491,10 @@ def summary(found: dict[str, dict[str, list[Tracked]]]) -> list[str]:
     return lines
 
 
-def model_misses(found: dict[str, dict[str, list[Tracked]]], mode_name: str = "PI loop, preview") -> list[str]:
+def model_misses(found: dict[str, dict[str, list[Tracked]]], mode: Mode = LOOP_PREVIEW) -> list[str]:
     """Per plant, for each moving shape in one mode: its RMS error and the model's own RMS error on the same drive
     (Tracked.model_rms_pct) [% of the stroke]."""
-    index = [mode.name for mode in MODES].index(mode_name)
+    index = MODES.index(mode)
     moving = [shape for shape in next(iter(found.values())) if not shape.startswith("held levels")]
     lines = ["| plant | " + " | ".join(moving) + " |", "|---|" + "---|" * len(moving)]
     for plant, by_shape in found.items():
