@@ -272,12 +272,14 @@ class Tracked:
 @dataclass(frozen=True)
 class Mode:
     """How the compensator is run: with the PI loop (feedback) or not, given the setpoint preview_s ahead or not, and
-    told the period of a setpoint that repeats (learning: Compensator.learning_period_s, the shape's repeat_period_s)."""
+    told the period of a setpoint that repeats (learning: Compensator.learning_period_s, the shape's repeat_period_s).
+    core: the law's class (the package's Compensator, or a candidate law of bench/bench_candidate_laws.py)."""
 
     name: str
     feedback: bool
     preview: bool
     learning: bool = False
+    core: type[Compensator] = Compensator
 
 
 LOOP_PREVIEW = Mode("PI loop, preview", True, True)  # the law the node runs by default
@@ -296,7 +298,7 @@ def drive(identified: Identified, form: Callable[[np.ndarray], np.ndarray], mode
     model = identified.model
     feedback = mode.feedback
     gains = imc_gains(model, PERIOD_S) if feedback else {"kp": 0.0, "ki": 0.0}
-    compensator = Compensator(model, MAX_CURRENT_A, **gains)
+    compensator = mode.core(model, MAX_CURRENT_A, **gains)
     ahead = round(compensator.preview_s(feedback) / PERIOD_S) if mode.preview else 0
     low, high = identified.stroke_m
     span = high - low
@@ -305,11 +307,14 @@ def drive(identified: Identified, form: Callable[[np.ndarray], np.ndarray], mode
     steps = lead_in + int(seconds / PERIOD_S)
     since_s = np.maximum(PERIOD_S * (np.arange(steps + 1 + ahead) - lead_in), 0.0)
     wanted = centre + half * form(since_s)
+    foresee = getattr(compensator, "foresee", None)  # a candidate law that looks further ahead than the preview
     measured = plant.step(compensator.drive.initial_current())
     positions, currents = np.empty(steps), np.empty(steps)
     for k in range(steps):
         if k == lead_in:
             compensator.learning_period_s = learning_period_s
+        if foresee is not None and ahead:
+            foresee(lambda seconds, k=k: wanted[min(k + ahead + round(seconds / PERIOD_S), wanted.size - 1)])
         currents[k] = compensator.command(wanted[k], measured if feedback else None, PERIOD_S if k else 0.0,
                                           ahead_m=wanted[k + ahead] if ahead else None)
         measured = positions[k] = plant.step(currents[k])
