@@ -6,16 +6,19 @@ Compensator, and none is in the package: each lost somewhere (bench/README.md, p
 
 - disturbance observer (tf): the loop's target less d, the measured position minus the inverse's model's own
   prediction on its currents, through a first-order filter of tf seconds: the model's miss corrected without
-  waiting for the PI loop's lag (with the model run on the whole command while a held level's linear path acts,
-  the held levels were worse still: the worst hold 4.17 and 9.60 % on two draws);
+  waiting for the PI loop's lag;
 - two degrees of freedom (lambda): the feedforward's current (its model run on it alone, its own preview) plus a PI
   on the error in amperes, tuned by IMC on the model's mean slope and tau (lambda = the fraction times tau);
 - hand-over lead (s): when the setpoint that many seconds beyond the preview wants the other wire, the inverse is
   driven towards it until the preview's setpoint wants that wire too (not on a step: between the two setpoints it
   moves no faster than the model's lag lets the stage follow, the preview's own rule): the relay switches earlier,
-  against the dead time of the wire taking over.
+  against the dead time of the wire taking over;
+- model-predictive (horizon): the current, held over the horizon (a fraction of the model's tau, in control periods),
+  whose run of the two-wire model from its state now, plus the measured position's offset from the model (through
+  a first-order filter of 1 s), comes nearest the setpoints due over that horizon (the least sum of squares; 41
+  currents over the limit, then 11 around the best), then the package's rate limit and relay hold; no PI loop.
 
-Prints the table and writes it to bench/results/candidate_laws.md (--out); about 20 minutes on two cores.
+Prints the table and writes it to bench/results/candidate_laws.md (--out); about 25 minutes on two cores.
 
     .venv/bin/python bench/bench_candidate_laws.py [--plants simulator,nominal,...] [--seed 0] [--out FILE]
 """
@@ -39,7 +42,9 @@ import bench_positioning as positioning  # noqa: E402
 from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.control.compensator import _wire, _within  # noqa: E402
 from sma_stage.control.drives import lead_horizon_s, reach_span_m  # noqa: E402
+from sma_stage.model.two_wire import TwoWireStream, _advance  # noqa: E402
 
+MPC_GRID, MPC_REFINE = 41, 11  # the currents the model-predictive law tries, over the limit and then around the best
 SHAPES = ("sine 50 s", "sine 100 s", "sine 250 s", "paper's validation", "slow ramp",
           "held levels 1", "held levels 2", "held levels 3")
 
@@ -127,6 +132,57 @@ class HandOverLead(Compensator):
         return self._further if self._further is not None and ahead is not None and chosen == ahead else chosen
 
 
+class ModelPredictive(Compensator):
+    """A move-blocked model-predictive law over a two-wire model (see the module's docstring); another model, or no
+    measurement, runs the package's law. bench_positioning.drive tells it the setpoints ahead through `foresee`."""
+
+    horizon_taus = 1.0  # the horizon, in the model's tau
+    offset_filter_s = 1.0  # the time constant [s] of the filter on the measured minus the model's output
+
+    def reset(self) -> None:
+        super().reset()
+        self._setpoint_at: Callable[[float], float] | None = None
+        self._offset_m: float | None = None
+
+    def foresee(self, setpoint_at: Callable[[float], float]) -> None:
+        """setpoint_at(s): the setpoint [m] s seconds beyond the preview's."""
+        self._setpoint_at = setpoint_at
+
+    def _cost(self, current_a: float, future_m: np.ndarray, step_s: float) -> float:
+        stream = self.drive.stream
+        state = stream._state.copy()
+        offset, cost = self._offset_m, 0.0
+        for wanted in future_m:
+            cost += (_advance(state, stream._p, stream._n, stream._m, current_a, step_s) + offset - wanted) ** 2
+        return cost
+
+    def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
+                hold_s: float | None = None, ahead_m: float | None = None) -> float:
+        if measured_m is None or not isinstance(getattr(self.drive, "stream", None), TwoWireStream):
+            return super().command(setpoint_m, measured_m, dt_s, hold_s, ahead_m)
+        self.drive.advance(self.command_a, dt_s)
+        self._looped = True
+        miss = measured_m - self.drive.predicted_m
+        if self._offset_m is None:
+            self._offset_m = miss
+        elif dt_s > 0.0:
+            self._offset_m += (1.0 - math.exp(-dt_s / self.offset_filter_s)) * (miss - self._offset_m)
+        step = positioning.PERIOD_S
+        count = max(1, round(self.horizon_taus * self.tau_s / step))
+        preview = self.preview_s(True)
+        future = np.array([setpoint_m if self._setpoint_at is None else self._setpoint_at(j * step - preview)
+                           for j in range(1, count + 1)])
+        limit = self._limit
+        grid = np.linspace(-limit, limit, MPC_GRID)
+        best = min(grid, key=lambda current: self._cost(current, future, step))
+        spacing = grid[1] - grid[0]
+        fine = np.clip(np.linspace(best - spacing, best + spacing, MPC_REFINE), -limit, limit)
+        best = float(min(fine, key=lambda current: self._cost(current, future, step)))
+        moving = self._setpoint.moves(setpoint_m, dt_s)
+        self.command_a = self._relay_held(self._rate_limited(best, dt_s, moving), dt_s)
+        return self.command_a
+
+
 def variant(base: type[Compensator], **settings: float) -> type[Compensator]:
     """A subclass of base with its class settings changed."""
     return type(base.__name__, (base,), dict(settings))
@@ -138,7 +194,10 @@ LAWS = [positioning.LOOP_PREVIEW] + [
     positioning.Mode(f"two degrees of freedom, lambda {fraction:g} tau", True, True,
                      core=variant(TwoDegreesOfFreedom, lambda_fraction=fraction)) for fraction in (0.35, 0.7)] + [
     positioning.Mode(f"hand-over lead, {lead:g} s", True, True, core=variant(HandOverLead, lead_s=lead))
-    for lead in (0.6, 1.2)]
+    for lead in (0.6, 1.2)] + [
+    positioning.Mode(f"model-predictive, {horizon:g} tau", True, True, core=variant(ModelPredictive,
+                                                                                   horizon_taus=horizon))
+    for horizon in (0.2, 0.3)]
 
 
 def cell(run: positioning.Tracked) -> str:
