@@ -292,7 +292,9 @@ def drive(identified: Identified, form: Callable[[np.ndarray], np.ndarray], mode
     """The plant (a copy of it after its identification record) driven for LEAD_IN_S at the shape's first value, then
     `seconds` through the shape, by the compensator; with a preview the compensator is given the setpoint its
     preview_s ahead (to the nearest step); with learning_period_s (the PI loop) the compensator learns a setpoint of
-    that period from the shape's start (Compensator.learning_period_s). (positions [m] after each command, the currents [A], the setpoints
+    that period from the shape's start (Compensator.learning_period_s); a law with a `foresee` method (a candidate of
+    bench/bench_candidate_laws.py) is told before each command the setpoint any seconds beyond the preview's (the
+    shape's last one past its end). (positions [m] after each command, the currents [A], the setpoints
     [m], one more than the commands: positions[k] is measured when setpoint k + 1 is due)."""
     plant = copy.deepcopy(identified.plant)
     model = identified.model
