@@ -18,7 +18,7 @@ Compensator, and none is in the package: each lost somewhere (bench/README.md, p
   a first-order filter of 1 s), comes nearest the setpoints due over that horizon (the least sum of squares; 41
   currents over the limit, then 11 around the best), then the package's rate limit and relay hold; no PI loop.
 
-Prints the table and writes it to bench/results/candidate_laws.md (--out); about 25 minutes on two cores.
+Prints the table and writes it to bench/results/candidate_laws.md (--out); 14-17 minutes on two cores.
 
     .venv/bin/python bench/bench_candidate_laws.py [--plants simulator,nominal,...] [--seed 0] [--out FILE]
 """
