@@ -87,8 +87,8 @@ class TwoDegreesOfFreedom(Compensator):
         closed_loop = self.lambda_fraction * tau
         kp, ki = self._amps_per_m * tau / closed_loop, self._amps_per_m / closed_loop
         error = setpoint_m - measured_m
-        if abs(feedforward + kp * error + self.feedback_integral_a) < self._limit or \
-                (feedforward + kp * error + self.feedback_integral_a) * error < 0.0:
+        before = feedforward + kp * error + self.feedback_integral_a
+        if abs(before) < self._limit or before * error < 0.0:  # anti-windup: not while it saturates with the error
             self.feedback_integral_a += ki * error * dt_s
         return _within(feedforward + kp * error + self.feedback_integral_a, 0.0, self._limit)
 
@@ -232,10 +232,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "candidate_laws.md")
     args = parser.parse_args()
-    names = args.plants.split(",")
-    unknown = [name for name in names if name not in positioning.PLANTS]
-    if unknown:
-        parser.error(f"unknown plant {unknown[0]!r}; one of {', '.join(positioning.PLANTS)}")
+    names = positioning.plant_names(parser, args.plants)
     started = time.perf_counter()
     forms = positioning.shapes(args.seed)
     header = ("| plant | setpoint | " + " | ".join(law.name for law in LAWS) + " |\n" + "|---" * (len(LAWS) + 2) + "|")

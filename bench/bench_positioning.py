@@ -10,7 +10,7 @@ the setpoints' band on each plant (no law crosses it faster) and, over the plant
 and how many plants are within issue 49's targets.
 
     .venv/bin/python bench/bench_positioning.py [--plants simulator,nominal,...] [--out FILE] [--seed 0]
-        [--record paper|designed] [--validate-levels]
+        [--record paper|designed|paper+tracking] [--validate-levels]
     .venv/bin/python bench/bench_positioning.py --reversal-speeds 1,2,3,4 [--plants ...]
 
 With --record designed, each plant is identified instead from what `gpi_tool excitation probe` and `designed --probe`
@@ -83,7 +83,11 @@ from sma_stage.signals import held_levels_signal  # noqa: E402
 PERIOD_S = 0.2
 RECORD_S = 1000.0
 PROBE_S = probe_duration_s(RECORD_S)  # of the designed record, the package's default share (100 s)
-RECORDS = ("paper", "designed", "paper+tracking")
+RECORDS = {  # --record: (the results file's stem, what the title adds)
+    "paper": ("positioning", ""),
+    "designed": ("positioning_designed", ", each identified from the probe and the designed excitation"),
+    "paper+tracking": ("positioning_tracking", ", each identified again with a record of the loop tracking a sine"),
+}
 TRACKING_PERIOD_S, TRACKING_S = 70.0, 500.0  # paper+tracking: the loop's sine then recorded (no shape of the table)
 MAX_CURRENT_A = 5.0
 STROKE_FRACTION = 0.7
@@ -437,10 +441,10 @@ HEADER = ("| plant | model (held-out RMS %) | setpoint | RMS / max %: " + "; ".j
           + " | settled mean / max %: same order | p99 current change %: same order |\n|---|---|---|---|---|---|")
 
 
-def law(mode: Mode, shape: str) -> tuple[bool, bool, bool]:
-    """What the compensator runs in a mode on a shape: (the loop, the preview, learning), learning only where the
-    shape repeats."""
-    return mode.feedback, mode.preview, mode.learning and repeat_period_s(shape) > 0.0
+def law(mode: Mode, shape: str) -> tuple[type[Compensator], bool, bool, bool]:
+    """What the compensator runs in a mode on a shape: (its class, the loop, the preview, learning), learning only
+    where the shape repeats."""
+    return mode.core, mode.feedback, mode.preview, mode.learning and repeat_period_s(shape) > 0.0
 
 
 def rows(name: str, identified: Identified, seed: int, found: dict[str, list[Tracked]]) -> list[str]:
@@ -448,7 +452,7 @@ def rows(name: str, identified: Identified, seed: int, found: dict[str, list[Tra
     found)."""
     lines = []
     for shape, form in shapes(seed).items():
-        by_law: dict[tuple[bool, bool, bool], Tracked] = {}  # a shape with no period: learning runs as without it
+        by_law: dict[tuple[type[Compensator], bool, bool, bool], Tracked] = {}  # a shape with no period: learning runs as without it
         for mode in MODES:
             if law(mode, shape) not in by_law:
                 by_law[law(mode, shape)] = track(identified, shape, form, mode)
@@ -556,13 +560,23 @@ def write(out: Path, title: str, body: str) -> None:
     atomic_write_text(out, f"# {title}\n\n{body}")
 
 
+def plant_names(parser: argparse.ArgumentParser, plants: str) -> list[str]:
+    """The plants of a comma-separated --plants, each one of PLANTS; else the parser's one-line error (exit 2)."""
+    names = plants.split(",")
+    unknown = [name for name in names if name not in PLANTS]
+    if unknown:
+        parser.error(f"unknown plant {unknown[0]!r} (known: {', '.join(PLANTS)})")
+    return names
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--plants", default=",".join(PLANTS), help=f"comma-separated, of {', '.join(PLANTS)}")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--record", choices=RECORDS, default="paper",
-                        help="the identification record: the paper's decaying sine, or the probe and the designed "
-                             "excitation (default out bench/results/positioning_designed.md)")
+                        help="the identification record: the paper's decaying sine; the probe and the designed "
+                             "excitation (default out bench/results/positioning_designed.md); or the paper's, then "
+                             "the loop tracking a sine (positioning_tracking.md)")
     parser.add_argument("--validate-levels", action="store_true",
                         help="validate on held random levels too, the choice on the worst record (default out "
                              "bench/results/positioning_levels.md or positioning_designed_levels.md)")
@@ -570,10 +584,7 @@ def main() -> None:
     parser.add_argument("--out", help="the table's file (default bench/results/positioning.md, with --reversal-speeds "
                                       "bench/results/reversal_speed.md)")
     args = parser.parse_args()
-    names = args.plants.split(",")
-    unknown = [name for name in names if name not in PLANTS]
-    if unknown:
-        parser.error(f"unknown plant {unknown[0]!r} (known: {', '.join(PLANTS)})")
+    names = plant_names(parser, args.plants)
     started = time.perf_counter()
     if args.reversal_speeds:
         lines = reversal_scan(names, args.seed, [float(text) for text in args.reversal_speeds.split(",")])
@@ -605,14 +616,10 @@ def main() -> None:
     print("\n".join(misses))
     levels = " --validate-levels" if args.validate_levels else ""
     note = run_note(f"--plants {args.plants} --seed {args.seed} --record {args.record}{levels}", started)
-    designed = args.record == "designed"
-    default_out = ({"designed": "positioning_designed", "paper+tracking": "positioning_tracking"}.get(
-        args.record, "positioning") + ("_levels" if levels else "") + ".md")
+    stem, identified_how = RECORDS[args.record]
+    default_out = stem + ("_levels" if levels else "") + ".md"
     write(Path(args.out or REPO / "bench" / "results" / default_out),
-          "Positioning stages the control law was not tuned on"
-          + (", each identified from the probe and the designed excitation" if designed else "")
-          + (", each identified again with a record of the loop tracking a sine" if args.record == "paper+tracking"
-             else "")
+          "Positioning stages the control law was not tuned on" + identified_how
           + (", validated on held random levels too" if levels else ""),
           "\n".join(table) + "\n\nOver the plants: the RMS range [% of the stroke] and the plants within issue 49's "
           "targets (RMS within 1 % with the PI loop, 3 % in feedforward; held levels: every hold settled within "
