@@ -31,7 +31,7 @@ import antagonistic_plant as physical  # noqa: E402
 from record_results import recorded  # noqa: E402
 
 from sma_stage.experiment.design import designed_signal  # noqa: E402
-from sma_stage.experiment.probe import analyse_probe, probe_duration_s, probe_signal  # noqa: E402
+from sma_stage.experiment.probe import ProbeResult, analyse_probe, probe_duration_s, probe_signal  # noqa: E402
 from sma_stage.identify.checks import moving_parts  # noqa: E402
 from sma_stage.identify.families import FAMILIES  # noqa: E402
 from sma_stage.identify.metrics import error_metrics  # noqa: E402
@@ -63,13 +63,18 @@ def choice_levels(stage: physical.Stage, seed: int) -> tuple[np.ndarray, np.ndar
     return t, current, physical.simulate(current, stage, seed + 10 * CHOICE_LEVELS_DRAW + 5)
 
 
+def probed(stage: physical.Stage, noise_seed: int) -> tuple[np.ndarray, ProbeResult]:
+    """What `gpi_tool excitation probe` runs on a stage from rest (PROBE_S at LIMIT_A, the plant's period): its
+    current [A] and what the probe found in the position recorded."""
+    t = np.arange(0.0, PROBE_S, PERIOD_S)
+    current = probe_signal(t, LIMIT_A, PROBE_S)
+    return current, analyse_probe(t, current, physical.simulate(current, stage, noise_seed))
+
+
 def designed_record(stage: physical.Stage, seed: int, design_seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                                                  str]:
     """The probe and then the design from it, on one stage: (t, current, position, what the probe found)."""
-    t_probe = np.arange(0.0, PROBE_S, PERIOD_S)
-    probe_current = probe_signal(t_probe, LIMIT_A, PROBE_S)
-    probe_y = physical.simulate(probe_current, stage, seed + 5)
-    found = analyse_probe(t_probe, probe_current, probe_y)
+    probe_current, found = probed(stage, seed + 5)
     t_design = np.arange(0.0, RECORD_S - PROBE_S, PERIOD_S)
     current = np.r_[probe_current, designed_signal(t_design, found, RECORD_S - PROBE_S, design_seed)]
     y = physical.simulate(current, stage, seed + 5)  # the same stage and noise: its first samples are the probe's
@@ -123,11 +128,9 @@ def probe_rows(variants: list[str], noise_seed: int) -> None:
     print("| variant | m c / (h A) [s] | probe's time constant [s] | wire a: 60 s holds move it 5 %-95 % [A] | "
           "probe's band, wire a; wire b [A] |")
     print("|---|---|---|---|---|")
-    t = np.arange(0.0, PROBE_S, PERIOD_S)
-    current = probe_signal(t, LIMIT_A, PROBE_S)
     for variant in variants:
         stage = physical.VARIANTS[variant]
-        found = analyse_probe(t, current, physical.simulate(current, stage, noise_seed + 5))
+        _, found = probed(stage, noise_seed + 5)
         lag = stage.density_kg_m3 * stage.specific_heat_j_kg_k * stage.wire_diameter_m / 4 / stage.convection_w_m2_k
         low, high = held_band(stage)
         bands = "; ".join(f"{band.start_a:.2f}-{band.end_a:.2f}" for band in found.wires)

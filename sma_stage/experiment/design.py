@@ -46,7 +46,9 @@ def _width(band: WireBand, limit: float) -> float:
     return max(band.end_a - band.start_a, 0.05 * limit)
 
 
-def _peak_range(band: WireBand, limit: float) -> tuple[float, float]:
+def peak_range(band: WireBand, limit: float) -> tuple[float, float]:
+    """The currents [A] a reversal curve's peak is drawn between: from a fifth into the wire's band to
+    BEYOND_BAND of its width above the band's end, within the limit [A]."""
     width = _width(band, limit)
     return min(band.start_a + 0.2 * width, limit), min(band.end_a + BEYOND_BAND * width, limit)
 
@@ -85,7 +87,7 @@ def design_schedule(probe: ProbeResult, duration_s: float, seed: int = 0) -> tup
     while times[-1] < duration_s:
         number = turn % len(wires)
         sign, band = wires[number]
-        low, high = _peak_range(band, limit)
+        low, high = peak_range(band, limit)
         peak = low + (high - low) * peaks[number].next()
         below = BELOW_BAND * band.start_a
         if abs(levels[-1]) < below or np.sign(levels[-1]) != sign:
@@ -100,7 +102,7 @@ def design_schedule(probe: ProbeResult, duration_s: float, seed: int = 0) -> tup
         if rng.uniform() < STEP_RUN_SHARE:
             for _ in range(rng.integers(*STEP_RUN_LEVELS)):
                 sign, band = wires[rng.integers(len(wires))]
-                level = rng.uniform(return_end_a(band, limit), _peak_range(band, limit)[1])
+                level = rng.uniform(return_end_a(band, limit), peak_range(band, limit)[1])
                 go(sign * level, MIN_STEP_S, tau * rng.uniform(*HOLD_TAUS))
         if len(wires) == 1 or rng.uniform() >= DIRECT_SHARE:
             go(0.0, ramp_s(levels[-1], band), tau * rng.uniform(*COOL_TAUS))
