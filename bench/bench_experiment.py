@@ -186,5 +186,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    with recorded(__file__, "experiment_levels" if "--choose-on-levels" in sys.argv[1:] else None):
+    named = ("_levels" if "--choose-on-levels" in sys.argv[1:] else "") + (
+        "_compact" if "two_wire_compact" in " ".join(sys.argv[1:]) else "")
+    with recorded(__file__, f"experiment{named}" if named else None):
         main()

@@ -10,8 +10,11 @@ the setpoints' band on each plant (no law crosses it faster) and, over the plant
 and how many plants are within issue 49's targets.
 
     .venv/bin/python bench/bench_positioning.py [--plants simulator,nominal,...] [--out FILE] [--seed 0]
-        [--record paper|designed|paper+tracking] [--validate-levels]
+        [--record paper|designed|paper+tracking] [--validate-levels] [--families gpi,...]
     .venv/bin/python bench/bench_positioning.py --reversal-speeds 1,2,3,4 [--plants ...]
+
+With --families, the families `diagnose` compares (default: `gpi_tool diagnose`'s); naming two_wire_compact writes
+the table to ..._compact.md unless --out says where.
 
 With --record designed, each plant is identified instead from what `gpi_tool excitation probe` and `designed --probe`
 would run on it (a 100 s probe, then the design from it drawn with the seed; 1000 s in all), the setpoints still
@@ -67,6 +70,7 @@ sys.path.insert(0, str(REPO / "test"))
 
 import antagonistic_plant as physical  # noqa: E402
 
+from sma_stage.cli import family_list  # noqa: E402
 from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.control import compensator as compensator_module  # noqa: E402
 from sma_stage.control.compensator import imc_gains  # noqa: E402
@@ -174,7 +178,8 @@ class Identified:
     record_end_s: float
 
 
-def identify(name: str, seed: int, record: str = "paper", levels: bool = False) -> Identified:
+def identify(name: str, seed: int, record: str = "paper", levels: bool = False,
+             families: tuple[str, ...] = FAMILIES) -> Identified:
     """Run the plant through its identification record and identify it (every family, 4 rounds, as `gpi_tool
     diagnose` does); the validation record (the paper's) runs on a fresh plant of the same kind, and with `levels`
     held random levels (held_levels_signal drawn with the seed) on another. record: "paper" (the paper's decaying
@@ -196,7 +201,7 @@ def identify(name: str, seed: int, record: str = "paper", levels: bool = False) 
         held = held_levels_signal(t, MAX_CURRENT_A, seed=seed)
         more.append(make_series(t, held, make_plant(name, seed + 2).record(held), "held levels"))
     ident = make_series(t, current, y_ident, "identification")
-    found = identify_recording(ident, valid, diagnose_rounds=4, workers=2, families=FAMILIES, more_validation=more)
+    found = identify_recording(ident, valid, diagnose_rounds=4, workers=2, families=families, more_validation=more)
     stroke = (float(paper_y.min()), float(paper_y.max()))
     if record == "paper+tracking":
         first = Identified(plant, found.model, "", math.nan, stroke, 0.0, float(ident.t[-1]))
@@ -204,7 +209,7 @@ def identify(name: str, seed: int, record: str = "paper", levels: bool = False) 
         both = np.r_[current, tracked]
         ident = make_series(PERIOD_S * np.arange(both.size), both, np.r_[y_ident, plant.record(tracked, False)],
                             "identification and tracking")
-        found = identify_recording(ident, valid, diagnose_rounds=4, workers=2, families=FAMILIES, more_validation=more)
+        found = identify_recording(ident, valid, diagnose_rounds=4, workers=2, families=families, more_validation=more)
     rows = found.report.get("families") or []
     chosen = [row for row in rows if row["chosen"]]
     valid_rms = chosen[0]["validation"]["rms_pct"] if chosen else found.report["validation"]["rms_pct"]
@@ -580,6 +585,8 @@ def main() -> None:
     parser.add_argument("--validate-levels", action="store_true",
                         help="validate on held random levels too, the choice on the worst record (default out "
                              "bench/results/positioning_levels.md or positioning_designed_levels.md)")
+    parser.add_argument("--families", type=family_list, default=FAMILIES,
+                        help="the model families compared (default: gpi_tool diagnose's)")
     parser.add_argument("--reversal-speeds", help="comma-separated values of REVERSAL_SPEED: the held levels only")
     parser.add_argument("--out", help="the table's file (default bench/results/positioning.md, with --reversal-speeds "
                                       "bench/results/reversal_speed.md)")
@@ -599,7 +606,7 @@ def main() -> None:
     print(HEADER, flush=True)
     tracked: dict[str, dict[str, list[Tracked]]] = {}
     for name in names:
-        identified = identify(name, args.seed, args.record, args.validate_levels)
+        identified = identify(name, args.seed, args.record, args.validate_levels, args.families)
         for line in rows(name, identified, args.seed, tracked.setdefault(name, {})):
             table.append(line)
             print(line, flush=True)
@@ -615,12 +622,15 @@ def main() -> None:
     misses = model_misses(tracked)
     print("\n".join(misses))
     levels = " --validate-levels" if args.validate_levels else ""
-    note = run_note(f"--plants {args.plants} --seed {args.seed} --record {args.record}{levels}", started)
+    named = f" --families {','.join(args.families)}" if args.families != FAMILIES else ""
+    note = run_note(f"--plants {args.plants} --seed {args.seed} --record {args.record}{levels}{named}", started)
     stem, identified_how = RECORDS[args.record]
-    default_out = stem + ("_levels" if levels else "") + ".md"
+    compact = "two_wire_compact" in args.families
+    default_out = stem + ("_levels" if levels else "") + ("_compact" if compact else "") + ".md"
     write(Path(args.out or REPO / "bench" / "results" / default_out),
           "Positioning stages the control law was not tuned on" + identified_how
-          + (", validated on held random levels too" if levels else ""),
+          + (", validated on held random levels too" if levels else "")
+          + (f", the families {', '.join(args.families)} compared" if args.families != FAMILIES else ""),
           "\n".join(table) + "\n\nOver the plants: the RMS range [% of the stroke] and the plants within issue 49's "
           "targets (RMS within 1 % with the PI loop, 3 % in feedforward; held levels: every hold settled within "
           "0.2 %):\n\n" + "\n".join(against) + "\n\n" + "The full current's crossing of the setpoints' band (no law crosses it faster), "

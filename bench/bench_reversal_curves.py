@@ -12,7 +12,9 @@ over 1. The chosen model is also scored on curves placed without the probe (peak
 on each curve of both records (from rest, as scored), and the ratio without each record's first peak. Prints both
 and writes them to bench/results/reversal_curves.md.
 
-    .venv/bin/python bench/bench_reversal_curves.py [--variants nominal,...]
+    .venv/bin/python bench/bench_reversal_curves.py [--variants nominal,...] [--families gpi,...]
+
+With --families naming two_wire_compact the tables go to bench/results/reversal_curves_compact.md.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from bench_experiment import probed  # noqa: E402
 from bench_positioning import NEW_VARIANTS  # noqa: E402
 from record_results import recorded  # noqa: E402
 
+from sma_stage.cli import family_list  # noqa: E402
 from sma_stage.experiment.design import peak_range  # noqa: E402
 from sma_stage.identify.families import FAMILIES  # noqa: E402
 from sma_stage.identify.metrics import error_metrics  # noqa: E402
@@ -85,6 +88,8 @@ def per_curve_rms(model: AnyModel, recorded: tuple[np.ndarray, np.ndarray, np.nd
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", default=",".join(STAGES))
+    parser.add_argument("--families", type=family_list, default=FAMILIES,
+                        help="the model families compared (default: gpi_tool diagnose's)")
     args = parser.parse_args()
     print("| variant | fit's peaks | family | model | fit RMS / max % | held-out curves RMS / max % | "
           "held-out / fit RMS | chosen: on the curves without the probe RMS / max % | seconds |")
@@ -104,7 +109,7 @@ def main() -> None:
             fitted, held_out = record(stage, fit_parts, 0), record(stage, held_parts, 1)
             started = time.perf_counter()
             found = identify_recording(make_series(*fitted, "fit curves"), make_series(*held_out, "held-out curves"),
-                                       families=FAMILIES, diagnose_rounds=2, workers=2)
+                                       families=args.families, diagnose_rounds=2, workers=2)
             seconds = time.perf_counter() - started
             on_fixed = error_metrics(fixed[2], found.model.without_state().predict(fixed[0], fixed[1]))
             for row in found.report["families"]:
@@ -133,5 +138,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    with recorded(__file__):
+    with recorded(__file__, "reversal_curves_compact" if "two_wire_compact" in " ".join(sys.argv[1:]) else None):
         main()

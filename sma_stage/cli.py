@@ -99,8 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="processes fitting a round's candidates at once (default: one per CPU; the "
                                "result is the same for any count)")
     diagnose.add_argument("--families", type=family_list, default=None,
-                          help="model families compared, comma-separated (default: all of them): gpi, gpi_free (its "
-                               "density as free weights), two_wire, bouc_wen (a baseline); the one "
+                          help="model families compared, comma-separated (default: gpi,gpi_free,two_wire,bouc_wen): gpi, "
+                               "gpi_free (its density as free weights), two_wire, two_wire_compact (a compact "
+                               "transformation onset), bouc_wen (a baseline); the one "
                                "with the lowest validation error (BIC between those within 5 %%) is written as "
                                "model.yaml")
     diagnose.set_defaults(handler=run_identify_command("run_diagnose"))

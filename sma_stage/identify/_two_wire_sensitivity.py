@@ -15,6 +15,7 @@ import numba
 import numpy as np
 
 from sma_stage.model.two_wire import (
+    COMPACT_ONSET,
     FIRST_SUBSTEP_S,
     FIRST_WEIGHT,
     RESISTANCE_DROP,
@@ -36,9 +37,13 @@ def _add_operator_fraction(state: np.ndarray, dstate: np.ndarray, p: np.ndarray,
     index, weight_index = 2 + wire * n + j, FIRST_WEIGHT + wire * n + j
     weight, width = p[weight_index], p[7 + wire]
     argument = (state[index] - p[5 + wire]) / width
-    tanh = math.tanh(argument)
-    sigma = 0.5 * (1.0 + tanh)
-    slope = weight * 0.5 * (1.0 - tanh * tanh) / width
+    if p[COMPACT_ONSET] > 0.0:
+        x = min(max((argument + 1.5) / 3.0, 0.0), 1.0)
+        sigma, dsigma = x * x * (3.0 - 2.0 * x), 2.0 * x * (1.0 - x)
+    else:
+        tanh = math.tanh(argument)
+        sigma, dsigma = 0.5 * (1.0 + tanh), 0.5 * (1.0 - tanh * tanh)
+    slope = weight * dsigma / width
     for c in range(p.size):
         dfraction[c] += slope * dstate[index, c]
     dfraction[5 + wire] -= slope

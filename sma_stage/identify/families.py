@@ -1,6 +1,7 @@
 """Model families compared on the same identification record: the GPI (with the effects its diagnosis added),
 the same GPI with free density weights, the two-wire model, and the Bouc-Wen model as a baseline from outside
-the Prandtl-Ishlinskii family. The choice: the lowest held-out RMS error (with several validation records, on the
+the Prandtl-Ishlinskii family (FAMILIES, the default); when named, the two-wire model with a compact transformation
+onset (`two_wire_compact`: a wire does not move the stage below its transformation start). The choice: the lowest held-out RMS error (with several validation records, on the
 record each family predicts worst), and among the families within PARSIMONY of it, the lowest BIC on the
 identification record (the simpler explanation when the held-out data cannot tell).
 """
@@ -24,8 +25,11 @@ from sma_stage.identify.workers import Pending, Workers
 from sma_stage.io.series import Series
 from sma_stage.model.identified import IdentifiedModel, Start
 
-FAMILIES = ("gpi", "gpi_free", "two_wire", "bouc_wen")
-HELD_CURRENT_FAMILIES = ("two_wire", "bouc_wen")  # fitted apart from the GPI's diagnosis, in its workers' processes
+FAMILIES = ("gpi", "gpi_free", "two_wire", "bouc_wen")  # fitted unless the families are named
+KNOWN_FAMILIES = ("gpi", "gpi_free", "two_wire", "two_wire_compact", "bouc_wen")
+HELD_CURRENT_FAMILIES = ("two_wire", "two_wire_compact", "bouc_wen")  # fitted apart from the GPI's diagnosis, in its
+# workers' processes
+ONSET = {"two_wire": "tanh", "two_wire_compact": "compact"}  # the two-wire families' transformation curves
 PARSIMONY = 0.05  # families within 5 % (relative) of the best held-out RMS are told apart by BIC
 
 
@@ -64,18 +68,18 @@ class FamilyRow:
 
 
 def check_families(names: Sequence[str]) -> tuple[str, ...]:
-    """The families named, in FAMILIES order; InputError for an unknown name or none."""
+    """The families named, in KNOWN_FAMILIES order; InputError for an unknown name or none."""
     names = [name.strip() for name in names if name.strip()]
-    unknown = [name for name in names if name not in FAMILIES]
+    unknown = [name for name in names if name not in KNOWN_FAMILIES]
     if unknown or not names:
         problem = f"unknown model family {unknown[0]!r}" if unknown else "no model family given"
-        raise InputError(f"{problem} (known: {', '.join(FAMILIES)})")
-    return tuple(name for name in FAMILIES if name in names)
+        raise InputError(f"{problem} (known: {', '.join(KNOWN_FAMILIES)})")
+    return tuple(name for name in KNOWN_FAMILIES if name in names)
 
 
 def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: Workers,
                            held_out: HeldOut | None = None) -> Pending:
-    """A held-current family's fit (two_wire or bouc_wen) on the identification record, begun in the pool's
+    """A held-current family's fit (HELD_CURRENT_FAMILIES) on the identification record, begun in the pool's
     processes; its result is the fit, or raises the InputError that says why the record cannot identify it (its
     `begin()` hands the two-wire fit's last jobs, the polish, to the pool once its starts are done).
     held_out: the validation record the two-wire fit tells its closest starts apart on and judges its tension
@@ -84,7 +88,7 @@ def start_held_current_fit(family: str, ident: Series, output_unit: str, pool: W
         return pool.submit(fit_bouc_wen, ident.t, ident.input, ident.output, output_unit)
     try:
         fitting = TwoWireFitting(ident.t, ident.input, ident.output, output_unit=output_unit, pool=pool,
-                                 held_out=held_out)
+                                 held_out=held_out, onset=ONSET[family])
     except InputError as error:
         return Pending(partial(_raise, error))
     return Pending(fitting.result, begin=fitting.polish)
@@ -106,9 +110,10 @@ def held_current_row(family: str, fitting: Pending, record: Series | None, score
     if record is not None and np.ptp(record.output[scored_from:]) > 0.0:
         predicted = found.model.without_state().predict(record.t, record.input)
         validation = error_metrics(record.output[scored_from:], predicted[scored_from:])
-    if family == "two_wire":
+    if family in ONSET:
         params = found.model.parameters
-        description = (f"two-wire, {params.wire_operators} operators per wire, {params.output_operators} output "
+        onset = "compact onset, " if ONSET[family] == "compact" else ""
+        description = (f"two-wire, {onset}{params.wire_operators} operators per wire, {params.output_operators} output "
                        "operators" + (f", the start of {found.admitted} that predicts best" if found.admitted > 1 else "")
                        + (f"; {found.tension}" if found.tension else ""))
     else:

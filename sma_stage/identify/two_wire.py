@@ -12,6 +12,9 @@ there are several (HeldOut.others); without one it stays at 0.
 each wire keeping its own time constant, centre, coupling and stroke; "per_wire" frees them all. Per-wire shapes
 predict the stage simulator better and the second physical stage worse in its worst records
 (docs/families.md gives the figures).
+
+`onset`: "tanh" (the default) or "compact", the shape of each wire's transformation curve (compact_onset in
+sma_stage.model.two_wire), set for the fit, not fitted; the `two_wire_compact` family fits the compact one.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from sma_stage.identify.fit import information_criterion
 from sma_stage.identify.metrics import ErrorMetrics, error_metrics, worst
 from sma_stage.identify.workers import Pending, Workers
 from sma_stage.model.checks import checked_record
-from sma_stage.model.two_wire import SCALARS, TwoWireModel, TwoWireParameters
+from sma_stage.model.two_wire import FIXED, ONSETS, SCALARS, TwoWireModel, TwoWireParameters
 
 WIRE_OPERATORS = 4
 OUTPUT_OPERATORS = 5
@@ -79,14 +82,14 @@ class TwoWireFit:
 def fit_two_wire(t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
                  output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None,
-                 held_out: HeldOut | None = None) -> TwoWireFit:
+                 held_out: HeldOut | None = None, onset: str = "tanh") -> TwoWireFit:
     """The two-wire model that best predicts y [output unit] from u [A] at times t [s], the record starting
     from a stage at rest. InputError (one line) when the record cannot identify it. pool: its processes search
     the starts and polish the leaders at once (the result is the same without). held_out: a record the starts
     that fit within START_FIT_MARGIN of the best are told apart on, and the tension coupling judged on
-    (TwoWireFitting.result)."""
+    (TwoWireFitting.result). onset: the transformation curve's shape (ONSETS)."""
     return TwoWireFitting(t, u, y, wire_operators, output_operators, starts, seed, output_unit, shapes, pool,
-                          held_out).result()
+                          held_out, onset).result()
 
 
 @dataclass(frozen=True)
@@ -121,8 +124,11 @@ class TwoWireFitting:
     def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int = WIRE_OPERATORS,
                  output_operators: int = OUTPUT_OPERATORS, starts: int = STARTS, seed: int = 0,
                  output_unit: str = "m", shapes: str = "shared", pool: Workers | None = None,
-                 held_out: HeldOut | None = None) -> None:
+                 held_out: HeldOut | None = None, onset: str = "tanh") -> None:
         self.started = time.perf_counter()
+        if onset not in ONSETS:
+            raise InputError(f"onset must be one of {', '.join(ONSETS)}, got {onset!r}")
+        compact = onset == "compact"
         t, u = checked_record(t, u)
         u, y = check_data(u, y)
         for name, count in (("wire_operators", wire_operators), ("output_operators", output_operators),
@@ -136,14 +142,15 @@ class TwoWireFitting:
         self.t, self.u, self.y, self.output_unit, self.shapes, self.held_out = t, u, y, output_unit, shapes, held_out
         self.pool = pool or Workers()
         fine = -(-t.size // POLISH_SAMPLES)
-        self.problem = _Problem(t[::fine], u[::fine], y[::fine], wire_operators, output_operators, shapes)
+        self.problem = _Problem(t[::fine], u[::fine], y[::fine], wire_operators, output_operators, shapes,
+                                compact=compact)
         thin = max(1, t.size // SEARCH_SAMPLES)
         self.search = _Problem(t[::thin], u[::thin], y[::thin], wire_operators, output_operators,
-                               shapes) if thin > fine else self.problem
+                               shapes, compact=compact) if thin > fine else self.problem
         self.coupled = _Problem(self.problem.t, self.problem.u, self.problem.y, wire_operators, output_operators,
-                                shapes, tension=True)
+                                shapes, tension=True, compact=compact)
         self.coupled_search = _Problem(self.search.t, self.search.u, self.search.y, wire_operators,
-                                       output_operators, shapes, tension=True)
+                                       output_operators, shapes, tension=True, compact=compact)
         self.starts, self.seed = starts, seed
         self.searching = self._search(self.search)
         self._coupled_searching = self._search(self.coupled_search) if held_out is not None else []
@@ -265,7 +272,7 @@ def _ranked(pending: list[Pending]) -> list:
 SHAPES = ("per_wire", "shared")  # each wire its own transformation shape, or one shape for both
 
 
-FULL_NAMES = [name for name in SCALARS if name != "heating_reference_a"]  # the full vector's scalars
+FULL_NAMES = [name for name in SCALARS if name not in FIXED]  # the full vector's scalars (those fitted)
 
 
 def _tie(wire_operators: int, output_operators: int, shapes: str, tension: bool = False) -> np.ndarray:
@@ -294,18 +301,19 @@ def _tie(wire_operators: int, output_operators: int, shapes: str, tension: bool 
 
 class _Problem:
     """The least-squares problem over the free parameters (the heating reference fixed at the record's largest
-    current), residuals in units of the output's span."""
+    current, the onset's shape at `compact`), residuals in units of the output's span."""
 
     def __init__(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, wire_operators: int,
-                 output_operators: int, shapes: str = "per_wire", tension: bool = False) -> None:
+                 output_operators: int, shapes: str = "per_wire", tension: bool = False, compact: bool = False) -> None:
         self.t, self.u, self.y = t, u, y
         self.n, self.m = wire_operators, output_operators
         self.reference = float(np.max(np.abs(u)))
         self.span = float(np.ptp(y))
         self.tension = tension
+        self.fixed = {"heating_reference_a": self.reference, "compact_onset": 1.0 if compact else 0.0}
         self.tie = _tie(wire_operators, output_operators, shapes, tension)
-        reference_index = SCALARS.index("heating_reference_a")  # held at self.reference, not fitted
-        self._fitted = np.array([c for c in range(self.tie.shape[0] + 1) if c != reference_index])
+        fixed_at = [SCALARS.index(name) for name in FIXED]
+        self._fitted = np.array([c for c in range(self.tie.shape[0] + len(FIXED)) if c not in fixed_at])
         first = self.tie.argmax(axis=0)  # each free parameter's first place in the full vector
         low, high = self._bounds()
         self.low, self.high = low[first], high[first]
@@ -352,7 +360,9 @@ class _Problem:
 
     def parameters(self, free: np.ndarray) -> TwoWireParameters:
         """The model's parameters for a vector of the free ones."""
-        full = np.insert(self.tie @ free, SCALARS.index("heating_reference_a"), self.reference)
+        full = self.tie @ free
+        for name in FIXED:  # in SCALARS order, so that each index is where it ends
+            full = np.insert(full, SCALARS.index(name), self.fixed[name])
         return TwoWireParameters.from_array(full, self.n, self.m)
 
     def residuals(self, free: np.ndarray) -> np.ndarray:

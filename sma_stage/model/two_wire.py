@@ -13,7 +13,9 @@ two wires' transformations pull together. Per wire w (a: heated by u > 0, b: by 
   it out of its transformation); the transformed
   fraction x_w = sum_j p_wj sigma((P_rj[seen_w] - centre_w) / width_w), P_r the play operator of threshold
   r_j = hysteresis_w j / (n - 1) and sigma(s) = (1 + tanh s) / 2 (a Preisach-like family of transformation
-  curves, the weights p_wj >= 0 free);
+  curves, the weights p_wj >= 0 free); with compact_onset 1 instead sigma(s) = h((s + 1.5) / 3), h(x) = 3x^2 - 2x^3
+  on [0, 1] (0 below, 1 above): the same slope at the centre, but a wire seen 1.5 widths below its centre does
+  not transform at all, as a real wire below its transformation start does not (tanh's tail moves it a little);
 - output: m = stroke_a x_a - stroke_b x_b, y = offset + sum_k q_k P_sk[m], s_k = output_threshold k / (m - 1),
   q_k >= 0 (the detwinning left in the cold wire, which makes the output lag what the wires pull).
 
@@ -41,15 +43,19 @@ from sma_stage.model.held import HeldCurrentModel, HeldState
 KIND = "two_wire"
 SCALARS = ("tau_a_s", "tau_b_s", "heating_reference_a", "coupling_a", "coupling_b", "centre_a", "centre_b",
            "width_a", "width_b", "hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "offset",
-           "output_threshold", "resistance_drop", "tension_coupling")
+           "output_threshold", "resistance_drop", "tension_coupling", "compact_onset")
 WEIGHTS = ("weights_a", "weights_b", "output_weights")
 POSITIVE = ("tau_a_s", "tau_b_s", "heating_reference_a", "width_a", "width_b")
 NON_NEGATIVE = ("hysteresis_a", "hysteresis_b", "stroke_a", "stroke_b", "output_threshold", "resistance_drop",
                 "tension_coupling")
-DEFAULTS = {"resistance_drop": 0.0, "tension_coupling": 0.0}  # what a model file written before each existed was fitted with
+DEFAULTS = {"resistance_drop": 0.0, "tension_coupling": 0.0, "compact_onset": 0.0}  # what a model file written
+# before each existed was fitted with
+FIXED = ("heating_reference_a", "compact_onset")  # set by the fit, not fitted
 FIRST_WEIGHT = len(SCALARS)  # where the weights start in the kernel's parameter vector
 RESISTANCE_DROP = SCALARS.index("resistance_drop")
 TENSION_COUPLING = SCALARS.index("tension_coupling")
+COMPACT_ONSET = SCALARS.index("compact_onset")
+ONSETS = ("tanh", "compact")  # the transformation curve's shape, compact_onset 0 and 1
 MAX_OPERATORS = 50
 HEADER = ("# sma_stage two-wire model: each wire's temperature and its own hysteresis in it, the output a\n"
           "# hysteresis of the two wires' pull (input in A, output in output_unit; see sma_stage.model.two_wire)\n")
@@ -69,8 +75,9 @@ SETTLING_SUBSTEPS = 30  # sub-steps over those time constants at most (longer on
 @dataclass(frozen=True)
 class TwoWireParameters:
     """The model's scalars (units: s, A of heating, output unit; couplings in A per output unit; resistance_drop
-    dimensionless, 0 to 1; tension_coupling in A of heating per wire's full transformation; each of the last two 0
-    when a model file has none) and its three weight vectors (dimensionless, >= 0)."""
+    dimensionless, 0 to 1; tension_coupling in A of heating per wire's full transformation; compact_onset 0 (the
+    tanh transformation curve) or 1 (the compact one); each of the last three 0 when a model file has none) and
+    its three weight vectors (dimensionless, >= 0)."""
 
     values: Mapping[str, float]
     weights_a: tuple[float, ...]
@@ -92,6 +99,9 @@ class TwoWireParameters:
         for name in NON_NEGATIVE:
             if values[name] < 0.0:
                 raise InputError(f"two-wire parameter {name} must be >= 0, got {values[name]:g}")
+        if values["compact_onset"] not in (0.0, 1.0):
+            raise InputError(f"two-wire parameter compact_onset must be 0 (tanh) or 1 (compact), got "
+                             f"{values['compact_onset']:g}")
         if values["resistance_drop"] >= 1.0:
             raise InputError(f"two-wire parameter resistance_drop must be < 1 (a share of the cold wire's "
                              f"resistance), got {values['resistance_drop']:g}")
@@ -154,8 +164,9 @@ class TwoWireParameters:
 
     @property
     def parameter_count(self) -> int:
-        """Free parameters, the heating reference left out (it is the record's largest current, not fitted)."""
-        return len(SCALARS) - 1 + 2 * self.wire_operators + self.output_operators
+        """Free parameters, the FIXED ones left out (the heating reference is the record's largest current; the
+        onset's shape is chosen, not fitted)."""
+        return len(SCALARS) - len(FIXED) + 2 * self.wire_operators + self.output_operators
 
 
 def state_size(wire_operators: int, output_operators: int) -> int:
@@ -164,7 +175,11 @@ def state_size(wire_operators: int, output_operators: int) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _sigma(value: float) -> float:
+def _sigma(value: float, compact: float) -> float:
+    """The transformation curve at value (widths from the centre): tanh's, or the compact one (compact > 0)."""
+    if compact > 0.0:
+        x = min(max((value + 1.5) / 3.0, 0.0), 1.0)
+        return x * x * (3.0 - 2.0 * x)
     return 0.5 * (1.0 + math.tanh(value))
 
 
@@ -184,7 +199,7 @@ def _transformed_share(state: np.ndarray, p: np.ndarray, n: int, wire: int) -> f
     for j in range(n):
         weight = p[FIRST_WEIGHT + wire * n + j]
         total += weight
-        transformed += weight * _sigma((state[2 + wire * n + j] - p[5 + wire]) / p[7 + wire])
+        transformed += weight * _sigma((state[2 + wire * n + j] - p[5 + wire]) / p[7 + wire], p[COMPACT_ONSET])
     return transformed / total if total > 0.0 else 0.0
 
 
@@ -250,7 +265,7 @@ def _substep(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, s
             state[index] = _play(state[index], seen, threshold)
             weight = p[FIRST_WEIGHT + wire * n + j]
             total += weight
-            fraction += weight * _sigma((state[index] - centre) / width)
+            fraction += weight * _sigma((state[index] - centre) / width, p[COMPACT_ONSET])
         share = fraction / total if total > 0.0 else 0.0
         if wire == 0:
             share_a = share
@@ -285,7 +300,7 @@ def _rest(p: np.ndarray, n: int, m: int, state: np.ndarray) -> None:
                 state[2 + wire * n + j] = seen
                 weight = p[FIRST_WEIGHT + wire * n + j]
                 total += weight
-                fraction += weight * _sigma((seen - p[5 + wire]) / p[7 + wire])
+                fraction += weight * _sigma((seen - p[5 + wire]) / p[7 + wire], p[COMPACT_ONSET])
             pull += sign * p[11 + wire] * fraction
             shares[wire] = 0.5 * (before[wire] + (fraction / total if total > 0.0 else 0.0))
         y_new = p[13]

@@ -34,8 +34,8 @@ IDENTIFICATION_PARAMS = [
     Param("refit_niceness", WORKER_NICENESS, "nice levels a refit's thread and its worker processes run below the "
           "node's other threads (Linux), so that a stage on the same computer keeps its cycles; 0: at the node's "
           "priority (a computer that only identifies)", 0, MAX_NICENESS),
-    Param("families", list(FAMILIES), "model families ~/refit fits on the same recording (default all: gpi, gpi_free, "
-          "two_wire, bouc_wen); the one with the lowest held-out error (then BIC) is written and pushed, and the "
+    Param("families", list(FAMILIES), "model families ~/refit fits on the same recording (default: gpi, gpi_free, "
+          "two_wire, bouc_wen; two_wire_compact when named); the one with the lowest held-out error (then BIC) is written and pushed, and the "
           "compensator runs it"),
     Param("model_file", "", "where ~/refit writes the fitted model (atomically); empty: not written"),
     Param("compensator_name", "compensator", "node that receives the fitted parameters (relative or absolute)",
