@@ -24,6 +24,7 @@ from sma_stage.model.two_wire import (
     SUBSTEP_GROWTH,
     TENSION_COUPLING,
     _rest,
+    transformation_curve,
 )
 
 REST_STEP = 1e-6  # the central differences of the rest state, relative to each parameter (absolute near 0)
@@ -37,12 +38,7 @@ def _add_operator_fraction(state: np.ndarray, dstate: np.ndarray, p: np.ndarray,
     index, weight_index = 2 + wire * n + j, FIRST_WEIGHT + wire * n + j
     weight, width = p[weight_index], p[7 + wire]
     argument = (state[index] - p[5 + wire]) / width
-    if p[COMPACT_ONSET] > 0.0:
-        x = min(max((argument + 1.5) / 3.0, 0.0), 1.0)
-        sigma, dsigma = x * x * (3.0 - 2.0 * x), 2.0 * x * (1.0 - x)
-    else:
-        tanh = math.tanh(argument)
-        sigma, dsigma = 0.5 * (1.0 + tanh), 0.5 * (1.0 - tanh * tanh)
+    sigma, dsigma = transformation_curve(argument, p[COMPACT_ONSET])
     slope = weight * dsigma / width
     for c in range(p.size):
         dfraction[c] += slope * dstate[index, c]

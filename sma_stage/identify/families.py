@@ -1,9 +1,10 @@
 """Model families compared on the same identification record: the GPI (with the effects its diagnosis added),
 the same GPI with free density weights, the two-wire model, and the Bouc-Wen model as a baseline from outside
 the Prandtl-Ishlinskii family (FAMILIES, the default); when named, the two-wire model with a compact transformation
-onset (`two_wire_compact`: a wire does not move the stage below its transformation start). The choice: the lowest held-out RMS error (with several validation records, on the
-record each family predicts worst), and among the families within PARSIMONY of it, the lowest BIC on the
-identification record (the simpler explanation when the held-out data cannot tell).
+onset (`two_wire_compact`: a wire does not move the stage below its transformation start). The choice: the lowest
+held-out RMS error (with several validation records, on the record each family predicts worst), and among the
+families within PARSIMONY of it, the lowest BIC on the identification record (the simpler explanation when the
+held-out data cannot tell).
 """
 
 from __future__ import annotations

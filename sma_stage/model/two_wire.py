@@ -175,12 +175,19 @@ def state_size(wire_operators: int, output_operators: int) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _sigma(value: float, compact: float) -> float:
-    """The transformation curve at value (widths from the centre): tanh's, or the compact one (compact > 0)."""
+def transformation_curve(value: float, compact: float) -> tuple[float, float]:
+    """The transformation curve at value (widths from the centre) and its slope there: tanh's, or the compact
+    one (compact > 0)."""
     if compact > 0.0:
         x = min(max((value + 1.5) / 3.0, 0.0), 1.0)
-        return x * x * (3.0 - 2.0 * x)
-    return 0.5 * (1.0 + math.tanh(value))
+        return x * x * (3.0 - 2.0 * x), 2.0 * x * (1.0 - x)
+    tanh = math.tanh(value)
+    return 0.5 * (1.0 + tanh), 0.5 * (1.0 - tanh * tanh)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sigma(value: float, compact: float) -> float:
+    return transformation_curve(value, compact)[0]
 
 
 @numba.njit(cache=True, nogil=True)
