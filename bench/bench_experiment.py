@@ -30,6 +30,7 @@ sys.path.insert(0, str(REPO / "bench"))
 import antagonistic_plant as physical  # noqa: E402
 from record_results import recorded  # noqa: E402
 
+from sma_stage.cli import family_list  # noqa: E402
 from sma_stage.experiment.design import designed_signal  # noqa: E402
 from sma_stage.experiment.probe import ProbeResult, analyse_probe, probe_duration_s, probe_signal  # noqa: E402
 from sma_stage.identify.checks import moving_parts  # noqa: E402
@@ -142,13 +143,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", default=",".join(physical.VARIANTS))
     parser.add_argument("--seeds", default="0,1,2,3,4", help="the design's seeds")
-    parser.add_argument("--families", default=",".join(FAMILIES))
+    parser.add_argument("--families", type=family_list, default=FAMILIES,
+                        help="the model families compared (default: gpi_tool diagnose's; naming two_wire_compact "
+                             "writes ..._compact.md)")
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--noise-seed", type=int, default=0)
     parser.add_argument("--choose-on-levels", action="store_true",
                         help="validate on held random levels of another draw too, the choice on the worst")
     args = parser.parse_args()
-    families = tuple(args.families.split(","))
+    families = args.families
     seeds = [int(seed) for seed in args.seeds.split(",")]
     shape_names = list(physical.VALIDATION_SHAPES)
     probe_rows(args.variants.split(","), args.noise_seed)

@@ -98,10 +98,10 @@ def main() -> None:
     for variant in args.variants.split(","):
         stage = STAGES[variant]
         _, found_probe = probed(stage, 2)
-        peaks = [np.linspace(*peak_range(band, LIMIT_A), PEAKS_PER_WIRE) for band in found_probe.wires]
+        ranges = [peak_range(band, LIMIT_A) for band in found_probe.wires]
+        peaks = [np.linspace(low, high, PEAKS_PER_WIRE) for low, high in ranges]
         bands.append(f"| {variant} | {found_probe.summary()} | "
-                     + "; ".join(f"{low:.2f}-{high:.2f}" for low, high in (peak_range(b, LIMIT_A)
-                                                                           for b in found_probe.wires)) + " |")
+                     + "; ".join(f"{low:.2f}-{high:.2f}" for low, high in ranges) + " |")
         fixed = record(stage, curves(FIXED_PEAKS, FIXED_PEAKS), 3)
         for half, held_half in (("even", "odd"), ("odd", "even")):
             fit_parts = curves(peaks[0][HALVES[half]], peaks[1][HALVES[half]])
