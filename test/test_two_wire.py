@@ -463,6 +463,13 @@ def test_a_fit_whose_every_run_with_the_tension_coupling_fails_keeps_the_fit_wit
     assert found.model.parameters.values["tension_coupling"] == 0.0 and np.isfinite(found.errors.rms_pct)
 
 
+def test_an_unknown_onset_is_refused_in_one_line():
+    t, u = excitation(300)
+    with pytest.raises(InputError, match="onset must be one of tanh, compact, got 'sharp'") as raised:
+        fit_two_wire(t, u, example_model().predict(t, u), onset="sharp")
+    assert "\n" not in str(raised.value)
+
+
 def test_a_record_heating_one_wire_only_is_refused():
     t = np.arange(0.0, 200.0, 0.2)
     u = 4.0 * np.abs(np.sin(t / 20.0))
