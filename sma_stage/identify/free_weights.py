@@ -14,13 +14,13 @@ from scipy.optimize import least_squares, lsq_linear
 
 from sma_stage.errors import InputError
 from sma_stage.model import _kernels
-from sma_stage.model.forward import model_arrays
 from sma_stage.model.identified import IdentifiedModel, Start
 
 FROM_REST = Start("rest")
 FIRST_WEIGHT_FLOOR = 1e-3  # the first weight stays above this fraction of the largest (the inverse divides by it)
 SEARCH_SAMPLES = 4000  # the envelopes are searched on a copy thinned to about this many samples
 SEARCH_EVALUATIONS = 200
+REFUSED_RESIDUAL_FACTOR = 10.0  # a refused trial's residual: this many times the start's, each sample
 
 
 def operator_outputs(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, start: Start) -> np.ndarray:
@@ -28,7 +28,8 @@ def operator_outputs(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, start
     starting as `start` says."""
     state = model.start_state(t, u, start)
     v = model.gpi_input(t, u, state)
-    theta, thresholds, _ = model_arrays(model.parameters, model.operators)
+    params = model.parameters
+    theta, thresholds = params.as_array()[:8].copy(), params.thresholds(model.operators)  # the density is not used
     columns = np.empty((v.size, model.operators))
     for index in range(model.operators):
         unit = np.zeros(model.operators)
@@ -68,14 +69,20 @@ def fit_free_weights(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, y: np
         weights = _weights(columns, target, scale)
         return trial, weights, columns @ weights - target
 
-    def residual(x: np.ndarray) -> np.ndarray:
-        return weighted(x, slice(None, None, thin))[2]
-
     x0 = np.array([getattr(model.parameters, name) for name in SEARCHED])
+    at_start = weighted(x0, slice(None, None, thin))[2]
+    refused = REFUSED_RESIDUAL_FACTOR * (np.abs(at_start) + float(np.sqrt(np.mean(at_start**2))))
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        try:
+            return weighted(x, slice(None, None, thin))[2]
+        except InputError:  # a trial the model refuses (a threshold step <= 0): worse than the start, the search goes on
+            return refused
+
     try:
         found = least_squares(residual, x0, x_scale="jac", max_nfev=SEARCH_EVALUATIONS)
-        x = found.x if found.cost <= 0.5 * float(np.sum(residual(x0) ** 2)) else x0
-    except (ValueError, InputError):  # a trial the model refuses (a threshold step <= 0): keep the fit's
+        x = found.x if found.cost <= 0.5 * float(at_start @ at_start) else x0
+    except ValueError:  # scipy refusing a step (residuals not finite): keep the fit's
         x = x0
     trial, weights, _ = weighted(x, slice(None))
     return replace(trial, parameters=trial.parameters.replace(weights=tuple(weights)), state=None)
