@@ -36,7 +36,9 @@ WIRES = ("a", "b")
 class WireBand:
     """What one wire does: heating moves the stage from start_a to end_a [A] (the static currents where its
     position crosses EDGE and 1 - EDGE of its travel); travel [output units], the static motion from rest to the
-    current limit, signed; the held currents [A] and the static positions they were heading for."""
+    current limit, signed; the held currents [A] and the static positions they were heading for. resolved: False
+    when the lowest held current already moved the stage past EDGE, so that start_a, interpolated from rest, only
+    says the start lies below that current."""
 
     wire: str
     moves: bool
@@ -45,6 +47,7 @@ class WireBand:
     end_a: float
     held_a: tuple[float, ...]
     static: tuple[float, ...]
+    resolved: bool = True
 
 
 @dataclass(frozen=True)
@@ -63,7 +66,11 @@ class ProbeResult:
         """One line for a log."""
         parts = [f"time constant {self.time_constant_s:.1f} s"]
         for band in self.wires:
-            if band.moves:
+            if band.moves and not band.resolved:
+                parts.append(f"wire {band.wire} moves the stage from below {band.held_a[0]:.2f} A (its lowest held "
+                             f"current already moved it; a probe to a lower current limit finds where) to "
+                             f"{band.end_a:.2f} A")
+            elif band.moves:
                 parts.append(f"wire {band.wire} moves the stage from {band.start_a:.2f} A to {band.end_a:.2f} A")
             else:
                 parts.append(f"wire {band.wire} does not move the stage up to {self.max_current_a:g} A")
@@ -173,7 +180,7 @@ def _band(name: str, currents: np.ndarray, static: np.ndarray, least: float) -> 
         return WireBand(name, False, travel, np.nan, np.nan, held, tuple(float(value) for value in static[1:]))
     travelled = np.maximum.accumulate((static - static[0]) / travel)
     return WireBand(name, True, travel, _crossing(currents, travelled, EDGE), _crossing(currents, travelled, 1 - EDGE),
-                    held, tuple(float(value) for value in static[1:]))
+                    held, tuple(float(value) for value in static[1:]), bool(travelled[1] < EDGE))
 
 
 def analyse_probe(t: np.ndarray, u: np.ndarray, y: np.ndarray) -> ProbeResult:
