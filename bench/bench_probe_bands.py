@@ -45,6 +45,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--plants", default=",".join([*physical.VARIANTS, *NEW_VARIANTS]))
     args = parser.parse_args()
+    physical_plants = [*physical.VARIANTS, *NEW_VARIANTS]
+    unknown = [name for name in args.plants.split(",") if name not in physical_plants]
+    if unknown:
+        parser.error(f"unknown plant {unknown[0]!r} (known: {', '.join(physical_plants)})")
     t = np.arange(0.0, PROBE_S, PERIOD_S)
     current = probe_signal(t, LIMIT_A, PROBE_S)
     first_stair = {"a": 0, "b": int(np.argmax(current < 0.0))}
