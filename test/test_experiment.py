@@ -41,7 +41,6 @@ def test_the_probe_finds_the_lag_and_where_each_wire_moves_the_stage(name):
     assert "time constant" in found.summary() and json.dumps(found.as_dict())
 
 
-
 def test_a_start_below_the_lowest_held_current_is_told_as_such():
     """On `thin_wires` wire b's first held current (2 A) already moves the stage past 5 % of its travel: the start
     interpolated from rest (0.6 A) is not claimed, the summary says "below 2.00 A" and what finds it; on `nominal`
@@ -51,6 +50,7 @@ def test_a_start_below_the_lowest_held_current_is_told_as_such():
     assert "wire b moves the stage from below 2.00 A" in thin.summary() and "lower current limit" in thin.summary()
     assert all(band.resolved for band in nominal.wires) and "below" not in nominal.summary()
     assert json.loads(json.dumps(thin.as_dict()))["wires"][1]["resolved"] is False
+
 
 def test_a_probe_that_moves_nothing_or_is_not_a_probe_is_refused_in_one_line():
     t = np.arange(0.0, PROBE_S, STEP_S)

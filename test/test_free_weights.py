@@ -29,6 +29,7 @@ def _bimodal_record() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     u = paper_identification_signal(t)
     return t, u, forward(u, FREE, OPERATORS) + rng.normal(0.0, 1e-7, t.size)
 
+
 def test_free_weights_stand_for_the_density_in_the_forward_model():
     v = paper_validation_signal(np.linspace(0.0, 800.0, 600))
     r = FREE.thresholds(OPERATORS)
