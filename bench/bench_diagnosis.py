@@ -49,11 +49,11 @@ def record(signal, samples: int, seed: int) -> Series:
     return make_series(run.t_s, run.current_a, run.measured_position_m, f"simulator {samples}")
 
 
-def _timed(label: str, function: object, *args: object) -> tuple[object, tuple[str, int, float, float]]:
-    """function(*args) in a worker, with (label, process id, start, end [s, time.time()])."""
+def _timed(label: str, function: object, *args: object) -> tuple[object, tuple[str, float, float]]:
+    """function(*args) in a worker, with (label, start, end [s, time.time()])."""
     started = time.time()
     value = function(*args)
-    return value, (label, os.getpid(), started, time.time())
+    return value, (label, started, time.time())
 
 
 def _label(function: object, args: tuple) -> str:
@@ -70,7 +70,7 @@ def _label(function: object, args: tuple) -> str:
 
 def phases() -> None:
     """Time every worker job of one identification of issue 50's record (see the module's docstring)."""
-    jobs: list[tuple[str, int, float, float]] = []
+    jobs: list[tuple[str, float, float]] = []
     submit = ProcessPoolExecutor.submit
 
     def timed_submit(executor: ProcessPoolExecutor, function: object, *args: object) -> object:
@@ -95,12 +95,12 @@ def phases() -> None:
     print(f"{os.cpu_count()} CPUs; {len(record)} samples, families {', '.join(FAMILIES)}, chosen: {', '.join(chosen)}; "
           f"{wall:.1f} s wall-clock\n")
     print("| job | count | seconds (sum) | first began, last ended [s] |\n|---|---|---|---|")
-    for label in dict.fromkeys(job[0] for job in sorted(jobs, key=lambda job: job[2])):
+    for label in dict.fromkeys(job[0] for job in sorted(jobs, key=lambda job: job[1])):
         mine = [job for job in jobs if job[0] == label]
-        print(f"| {label} | {len(mine)} | {sum(end - begin for _, _, begin, end in mine):.2f} | "
-              f"{min(job[2] for job in mine) - started:.2f}, {max(job[3] for job in mine) - started:.2f} |")
-    busy = sum(end - begin for _, _, begin, end in jobs)
-    last = max(job[3] for job in jobs) - started
+        print(f"| {label} | {len(mine)} | {sum(end - begin for _, begin, end in mine):.2f} | "
+              f"{min(job[1] for job in mine) - started:.2f}, {max(job[2] for job in mine) - started:.2f} |")
+    busy = sum(end - begin for _, begin, end in jobs)
+    last = max(job[2] for job in jobs) - started
     print(f"| every job | {len(jobs)} | {busy:.2f} | the workers busy {busy / (2 * last):.0%} of 2 x {last:.1f} s; "
           f"the main process alone after them: {wall - last:.1f} s |")
 

@@ -12,6 +12,7 @@ bench/results/probe_bands.md.
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 from pathlib import Path
 
@@ -31,14 +32,18 @@ PROBE_S, LIMIT_A, HOLD_S = 100.0, 5.0, 60.0
 HELD_A = (0.5, 1.0, 1.5, 2.0)
 
 
-def held_motion(name: str, prefix: np.ndarray, current_a: float) -> float:
-    """How far [m] the plant moves, noise-free, held at current_a for HOLD_S after the probe's first samples."""
-    plant = make_plant(name, 0)
+def held_motions(name: str, prefix: np.ndarray, currents_a: list[float]) -> list[float]:
+    """How far [m] the plant moves, noise-free, held at each current for HOLD_S after the probe's first samples
+    (each from a copy of the plant there)."""
+    start = make_plant(name, 0)
     if prefix.size:
-        plant.record(prefix)
-    before = plant.plant.position_m
-    plant.record(np.full(int(HOLD_S / PERIOD_S), current_a))
-    return plant.plant.position_m - before
+        start.record(prefix)
+    moved = []
+    for current_a in currents_a:
+        plant = copy.deepcopy(start)
+        plant.record(np.full(int(HOLD_S / PERIOD_S), current_a))
+        moved.append(plant.plant.position_m - start.plant.position_m)
+    return moved
 
 
 def main() -> None:
@@ -59,7 +64,7 @@ def main() -> None:
         found = analyse_probe(t, current, make_plant(name, 0).record(current))
         for band, sign in zip(found.wires, (1.0, -1.0), strict=True):
             prefix = current[:first_stair[band.wire]]
-            moved = [100.0 * held_motion(name, prefix, sign * level) / band.travel for level in HELD_A]
+            moved = [100.0 * value / band.travel for value in held_motions(name, prefix, [sign * level for level in HELD_A])]
             print(f"| {name} | {band.wire} | {band.start_a:.2f}-{band.end_a:.2f} | {'yes' if band.resolved else 'no'} | "
                   + ", ".join(f"{value:.1f}" for value in moved) + " |", flush=True)
 

@@ -14,6 +14,7 @@ from scipy.optimize import least_squares, lsq_linear
 
 from sma_stage.errors import InputError
 from sma_stage.model import _kernels
+from sma_stage.model.forward import shape_arrays
 from sma_stage.model.identified import IdentifiedModel, Start
 
 FROM_REST = Start("rest")
@@ -28,8 +29,7 @@ def operator_outputs(model: IdentifiedModel, t: np.ndarray, u: np.ndarray, start
     starting as `start` says."""
     state = model.start_state(t, u, start)
     v = model.gpi_input(t, u, state)
-    params = model.parameters
-    theta, thresholds = params.as_array()[:8].copy(), params.thresholds(model.operators)  # the density is not used
+    theta, thresholds = shape_arrays(model.parameters, model.operators)  # the free weights replace the density
     columns = np.empty((v.size, model.operators))
     for index in range(model.operators):
         unit = np.zeros(model.operators)

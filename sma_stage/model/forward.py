@@ -21,12 +21,18 @@ def initial_states(params: GPIParameters, operators: int, initial: np.ndarray | 
     return states
 
 
+def shape_arrays(params: GPIParameters, operators: int) -> tuple[np.ndarray, np.ndarray]:
+    """(theta = a1..a8 as an array, thresholds r [output unit]) for the kernels: the envelopes and the operators,
+    without their weights."""
+    return params.as_array()[:8].copy(), params.thresholds(operators)
+
+
 def model_arrays(params: GPIParameters, operators: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(theta = a1..a8 as an array, thresholds r [output unit], weights p) for the kernels."""
     weights = params.densities(operators)
     if not np.all(np.isfinite(weights)):
         raise InputError("density p(r) = a10 exp(-a11 r) overflows: a11 too negative for this many operators")
-    return params.as_array()[:8].copy(), params.thresholds(operators), weights
+    return (*shape_arrays(params, operators), weights)
 
 
 def forward(v: np.ndarray, params: GPIParameters, operators: int = DEFAULT_OPERATORS,
