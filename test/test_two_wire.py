@@ -609,7 +609,7 @@ def test_the_compact_onset_is_a_family_of_its_own_and_chosen_where_it_predicts_b
 def test_the_two_wire_inverse_tracks_the_second_stage_in_feedforward(nominal_stage, nominal_fit):
     """The exact inverse one sample at a time drives the physical stage (no measurement fed back) along a sine
     over 70 % of the identified span: at most 2 % RMS and 6 % max of that span after the first cycle (measured
-    1.33 % and 4.07 %; a 10-operator plain GPI through the package's compensator: 6.17 % and 16.1 %)."""
+    1.32 % and 4.00 %; a 10-operator plain GPI through the package's compensator: 6.17 % and 16.1 %)."""
     from antagonistic_plant import HISTORY_S, SAMPLE_PERIOD_S, SUBSTEPS, AntagonisticStage
 
     plant = AntagonisticStage(VARIANTS["nominal"])
