@@ -77,6 +77,8 @@ def main() -> None:
     if unknown:
         parser.exit(2, f"bench_sample_period.py: unknown variant {unknown[0]!r} (known: "
                        f"{', '.join(physical.VARIANTS)})\n")
+    if args.seed < 0:
+        parser.exit(2, f"bench_sample_period.py: --seed must be 0 or more, got {args.seed}\n")
     names = list(physical.VALIDATION_SHAPES)
     print("| variant | model | step [s] | " + " | ".join(f"{name} RMS / max %" for name in names) + " |")
     print("|---" * (3 + len(names)) + "|")
