@@ -47,11 +47,12 @@ def held_motions(name: str, prefix: np.ndarray, currents_a: list[float]) -> list
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--plants", default=",".join([*physical.VARIANTS, *NEW_VARIANTS]))
-    args = parser.parse_args()
     physical_plants = [*physical.VARIANTS, *NEW_VARIANTS]
-    unknown = [name for name in args.plants.split(",") if name not in physical_plants]
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--plants", default=",".join(physical_plants))
+    args = parser.parse_args()
+    plants = args.plants.split(",")
+    unknown = [name for name in plants if name not in physical_plants]
     if unknown:
         parser.error(f"unknown plant {unknown[0]!r} (known: {', '.join(physical_plants)})")
     t = np.arange(0.0, PROBE_S, PERIOD_S)
@@ -60,7 +61,7 @@ def main() -> None:
     print("| plant | wire | the probe's band [A] | start between held currents | held 60 s at "
           + ", ".join(f"{level:g}" for level in HELD_A) + " A: motion, % of the wire's travel |")
     print("|---|---|---|---|---|")
-    for name in args.plants.split(","):
+    for name in plants:
         found = analyse_probe(t, current, make_plant(name, 0).record(current))
         for band, sign in zip(found.wires, (1.0, -1.0), strict=True):
             prefix = current[:first_stair[band.wire]]

@@ -265,21 +265,29 @@ def test_the_gpi_model_file_still_reads_as_a_gpi(tmp_path):
         load_model_file(tmp_path / "two_wire.yaml")
 
 
-@pytest.mark.parametrize(("arguments", "message"), [
-    (["--variants", "nope"], "unknown variant 'nope'"),
-    (["--alternatives", "--seeds", "0,x"], "--seeds must be comma-separated integers"),
-    (["--alternatives", "--shapes", "odd"], "--shapes must be among"),
-    (["--alternatives", "--output-operators", "0"], "--output-operators must be from 1 to 50"),
+@pytest.mark.parametrize(("script", "arguments", "message"), [
+    ("test/antagonistic_plant.py", ["--variants", "nope"], "unknown variant 'nope'"),
+    ("test/antagonistic_plant.py", ["--alternatives", "--seeds", "0,x"], "--seeds must be comma-separated integers"),
+    ("test/antagonistic_plant.py", ["--alternatives", "--shapes", "odd"], "--shapes must be among"),
+    ("test/antagonistic_plant.py", ["--alternatives", "--output-operators", "0"],
+     "--output-operators must be from 1 to 50"),
+    ("bench/bench_sample_period.py", ["--variants", "nope"], "unknown variant 'nope'"),
+    ("bench/bench_sample_period.py", ["--seed", "-1"], "--seed must be 0 or more"),
+    ("bench/bench_probe_bands.py", ["--plants", "simulator"], "unknown plant 'simulator'"),
 ])
-def test_the_second_stage_script_refuses_bad_arguments_in_one_line(arguments, message):
+def test_the_second_stage_scripts_refuse_bad_arguments_in_one_line(script, arguments, message):
+    """The second stage's script and the benchmarks on its plants end in one line, their results files untouched."""
     import subprocess
     import sys
     from pathlib import Path
 
-    script = Path(__file__).with_name("antagonistic_plant.py")
-    run = subprocess.run([sys.executable, str(script), *arguments], capture_output=True, text=True, timeout=120)
+    repo = Path(__file__).resolve().parents[1]
+    results = repo / "bench" / "results" / f"{Path(script).stem.removeprefix('bench_')}.md"
+    before = results.read_bytes() if results.exists() else None
+    run = subprocess.run([sys.executable, str(repo / script), *arguments], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and run.stdout == ""
     assert message in run.stderr.strip().splitlines()[-1] and "Traceback" not in run.stderr
+    assert (results.read_bytes() if results.exists() else None) == before
 
 
 @pytest.mark.parametrize(("shapes", "tension", "compact"), [("shared", False, False), ("per_wire", False, False),
