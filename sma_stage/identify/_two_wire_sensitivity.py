@@ -212,6 +212,7 @@ def run_with_sensitivities(t: np.ndarray, u: np.ndarray, p: np.ndarray, n: int, 
         dout[k] = dstate[y_row]
 
 
+@numba.njit(cache=True, nogil=True)
 def rest_with_sensitivities(p: np.ndarray, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
     """The rest state (the model's _rest) and its derivative over p (one row per state), by central differences."""
     size = 3 + 2 * n + m

@@ -315,6 +315,9 @@ class _Problem:
         fixed_at = [SCALARS.index(name) for name in FIXED]
         self._fitted = np.array([c for c in range(self.tie.shape[0] + len(FIXED)) if c not in fixed_at])
         first = self.tie.argmax(axis=0)  # each free parameter's first place in the full vector
+        last = self.tie.shape[0] - 1 - self.tie[::-1].argmax(axis=0)  # and its last (the same unless tied)
+        self._kernel_first, self._tied = self._fitted[first], np.flatnonzero(last != first)
+        self._kernel_last = self._fitted[last[self._tied]]
         low, high = self._bounds()
         self.low, self.high = low[first], high[first]
 
@@ -376,7 +379,10 @@ class _Problem:
         state, dstate = rest_with_sensitivities(p, self.n, self.m)
         out, dout = np.empty(self.t.size), np.empty((self.t.size, p.size))
         run_with_sensitivities(self.t, self.u, p, self.n, self.m, state, dstate, out, dout)
-        return dout[:, self._fitted] @ self.tie / self.span
+        jacobian = dout.take(self._kernel_first, axis=1)  # C order: scipy's sums run as over `tie`'s product
+        jacobian[:, self._tied] += dout.take(self._kernel_last, axis=1)  # a tied pair's second column (no more)
+        jacobian /= self.span
+        return jacobian
 
     def solve(self, start: np.ndarray, evaluations: int, tolerance: float = 1e-8) -> object:
         """scipy's least_squares from start, stopped after `evaluations`, when the cost and the step change by
