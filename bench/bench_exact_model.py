@@ -8,7 +8,7 @@ horizon, brings the copy of the plant to the target, found by bisection; the cop
 the inverse's model is). Everything else of the law is the package's: its lag, reach and gains still come from the
 identified model. The loop is closed on the measured position (with its noise) as before.
 
-Prints the table and writes it to bench/results/exact_model.md (--out); about 25 minutes for the nine plants and
+Prints the table and writes it to bench/results/exact_model.md (--out); about 35 minutes for the nine plants and
 two sines with two worker processes (the plant's bisection runs the plant some 20 times per command).
 
     .venv/bin/python bench/bench_exact_model.py [--plants nominal,...] [--shapes "sine 50 s,sine 100 s"]
