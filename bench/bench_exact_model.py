@@ -39,22 +39,29 @@ SUBSTEP_S = positioning.PERIOD_S / physical.SUBSTEPS  # the physical plant's own
 DEFAULT_SHAPES = ("sine 50 s", "sine 100 s")
 
 
-def _advance(stage: object, current_a: float, dt_s: float) -> float:
-    """Step a plant's state (the physical stage or the simulator) by dt_s [s] at current_a [A]: its true position [m]."""
+def _position(stage: object) -> float:
+    """A plant's state's true position [m] (the physical stage or the simulator, before its sensor)."""
     if isinstance(stage, physical.AntagonisticStage):
-        steps = max(1, math.ceil(dt_s / SUBSTEP_S - 1e-9))
-        for _ in range(steps):
-            stage.step(current_a, dt_s / steps)
         return float(stage.position_m)
-    return stage.step(current_a, dt_s).position_m
+    return stage.state.position_m
+
+
+def _advance(stage: object, current_a: float, dt_s: float) -> float:
+    """Step a plant's state by dt_s [s] at current_a [A]: its true position [m] at the end."""
+    if not isinstance(stage, physical.AntagonisticStage):
+        return stage.step(current_a, dt_s).position_m
+    steps = max(1, math.ceil(dt_s / SUBSTEP_S - 1e-9))
+    for _ in range(steps):
+        stage.step(current_a, dt_s / steps)
+    return _position(stage)
 
 
 class PlantStream:
     """A copy of the plant in the place of the two-wire model's stream (the interface StreamDrive uses): `step`,
     `output`, `current_for` (the exact inverse over a hold, by bisection on the plant) and `last_clipped`."""
 
-    def __init__(self, stage: object, max_current_a: float, position_m: float) -> None:
-        self.stage, self.max_current_a, self.output, self.last_clipped = stage, max_current_a, position_m, 0
+    def __init__(self, stage: object, max_current_a: float) -> None:
+        self.stage, self.max_current_a, self.output, self.last_clipped = stage, max_current_a, _position(stage), 0
 
     def step(self, current_a: float, dt_s: float) -> float:
         self.output = _advance(self.stage, current_a, dt_s)
@@ -77,29 +84,23 @@ class PlantStream:
         return 0.5 * (low + high)
 
 
-def exact_law(stage: object, position_m: float) -> type[Compensator]:
-    """The package's Compensator with its inverse's model replaced by a copy of `stage` (at `position_m` [m])."""
+def exact_law(stage: object) -> type[Compensator]:
+    """The package's Compensator with its inverse's model replaced by a copy of `stage` (a plant's state)."""
 
     class ExactModel(Compensator):
         def reset(self) -> None:
             super().reset()
-            self.drive.stream = PlantStream(copy.deepcopy(stage), self.max_current_a, position_m)
+            self.drive.stream = PlantStream(copy.deepcopy(stage), self.max_current_a)
 
     return ExactModel
-
-
-def _true_stage(plant: positioning.SimulatorPlant | positioning.PhysicalPlant) -> tuple[object, float]:
-    """(a plant's state to copy, its true position [m])."""
-    if isinstance(plant, positioning.PhysicalPlant):
-        return plant.plant, float(plant.plant.position_m)
-    return plant.stage, float(plant.stage._position)  # the simulator's true position, before its sensor
 
 
 def plant_rows(name: str, shapes: list[str], seed: int) -> list[str]:
     """One row per setpoint of one plant: the law with the identified model, then with the exact one."""
     identified = positioning.identify(name, seed)
-    stage, position = _true_stage(identified.plant)
-    exact = positioning.Mode("PI loop, preview, exact model", True, True, core=exact_law(stage, position))
+    plant = identified.plant
+    stage = plant.plant if isinstance(plant, positioning.PhysicalPlant) else plant.stage
+    exact = positioning.Mode("PI loop, preview, exact model", True, True, core=exact_law(stage))
     forms = positioning.shapes(seed)
     rows = []
     for shape in shapes:
@@ -118,13 +119,15 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "exact_model.md")
     args = parser.parse_args()
     names = positioning.plant_names(parser, args.plants)
+    if args.seed < 0:
+        parser.error(f"--seed must be 0 or more, got {args.seed}")
+    if not 1 <= args.workers <= 16:
+        parser.error(f"--workers must be from 1 to 16, got {args.workers}")
     shapes = args.shapes.split(",")
     known = positioning.shapes(args.seed)
     unknown = [shape for shape in shapes if shape not in known]
     if unknown:
         parser.error(f"unknown shape {unknown[0]!r} (known: {', '.join(known)})")
-    if args.seed < 0 or not 1 <= args.workers <= 16:
-        parser.error("--seed must be 0 or more and --workers from 1 to 16")
     started = time.perf_counter()
     header = ("| plant | setpoint | PI loop, preview: RMS / max % (p99 change %) | the same, the plant as its model |\n"
               "|---|---|---|---|")
