@@ -16,11 +16,22 @@ Compensator, and none is in the package: each lost somewhere (bench/README.md, p
 - model-predictive (horizon): the current, held over the horizon (a fraction of the model's tau, in control periods),
   whose run of the two-wire model from its state now, plus the measured position's offset from the model (through
   a first-order filter of 1 s), comes nearest the setpoints due over that horizon (the least sum of squares; 41
-  currents over the limit, then 11 around the best), then the package's rate limit and relay hold; no PI loop.
+  currents over the limit, then 11 around the best), then the package's rate limit and relay hold; no PI loop;
+- two-move planner (horizon): while the setpoint moves, no faster than the model's lag lets the stage follow, the
+  current path
+  with the least squared error between the setpoints due over the horizon and the two-wire model's run plus the
+  measured offset (through a first-order filter of 0.5 s): a first target for the current, then after 0.4, 1 or
+  2 s a second one, each reached at the package's rate limit (the dead band crossed at once; the other wire only
+  after the relay's hold, then up to the package's hand-over jump at once), 41 targets over the limit for each;
+  its first step is commanded as planned (the relay's hold kept); with a switch cost, each relay switch in a
+  path costs four relay holds' worth of an error of 1 % of the model's reach span; while the setpoint holds or steps, the package's
+  law, its integral taken from the planner's offset when the planner lets go.
 
-Prints the table and writes it to bench/results/candidate_laws.md (--out); 14-17 minutes on two cores.
+Prints the table and writes it to bench/results/candidate_laws.md (--out); 14-17 minutes on two cores without the
+planners, each planner 20-27 minutes more (one process; `--only "planner, 5 s"`: the default and that law alone).
 
-    .venv/bin/python bench/bench_candidate_laws.py [--plants simulator,nominal,...] [--seed 0] [--out FILE]
+    .venv/bin/python bench/bench_candidate_laws.py [--plants simulator,nominal,...] [--seed 0] [--only TEXT]
+        [--out FILE]
 """
 
 from __future__ import annotations
@@ -32,6 +43,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numba
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,7 +52,7 @@ sys.path.insert(0, str(REPO / "bench"))
 import bench_positioning as positioning  # noqa: E402
 
 from sma_stage.control import Compensator  # noqa: E402
-from sma_stage.control.compensator import _wire, _within  # noqa: E402
+from sma_stage.control.compensator import RELAY_HOLD_S, _wire, _within  # noqa: E402
 from sma_stage.control.drives import lead_horizon_s, reach_span_m  # noqa: E402
 from sma_stage.model.two_wire import TwoWireStream, _advance  # noqa: E402
 
@@ -183,6 +195,153 @@ class ModelPredictive(Compensator):
         return self.command_a
 
 
+@numba.njit(cache=True)
+def _toward(current: float, target: float, side: int, step_a: float, jump_a: float, low: float, high: float,
+            may_switch: bool) -> float:
+    """The current [A] one control period after `current` on its way to `target`: beyond the dead band (low, high)
+    [A] at most step_a per period, the band crossed at once; to the wire other than `side` (the relay's, +1 or -1)
+    only when may_switch, then at once up to jump_a beyond the band (the package's hand-over jump), else held at
+    the band's edge."""
+    start = current - high if current > high else (current - low if current < low else 0.0)
+    end = target - high if target > high else (target - low if target < low else 0.0)
+    wanted = 1 if end > 0.0 else (-1 if end < 0.0 else 0)
+    if wanted != 0 and wanted != side:
+        if not may_switch:
+            end = 0.0
+        else:
+            moved = min(end, jump_a) if end > 0.0 else max(end, -jump_a)
+            return high + moved if moved > 0.0 else low + moved
+    if end == start:
+        return current if end != 0.0 else (min(high, max(low, target)) if wanted == 0 else (high if side > 0 else low))
+    moved = min(start + step_a, end) if end > start else max(start - step_a, end)
+    if moved != 0.0:
+        return high + moved if moved > 0.0 else low + moved
+    return min(high, max(low, target)) if wanted == 0 else (high if side > 0 else low)
+
+
+@numba.njit(cache=True)
+def _run_path(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, side: int, held: int, target: float,
+              steps: range, limits: np.ndarray, future: np.ndarray, offset: float, period_s: float,
+              bound: float) -> tuple[float, float, int, int]:
+    """Run the model (state, changed in place) along the path towards `target` over `steps` (indices of `future`
+    [m], the setpoints due); (the squared error summed, the current at the end [A], the relay's side, the periods
+    since its last switch); stops once the sum passes `bound`. limits: (step_a, jump_a, low, high, hold periods)."""
+    cost = 0.0
+    for k in steps:
+        current = _toward(current, target, side, limits[0], limits[1], limits[2], limits[3], held >= limits[4])
+        wire = 1 if current > limits[3] else (-1 if current < limits[2] else 0)
+        held += 1
+        if wire != 0 and wire != side:
+            side, held = wire, 0
+            cost += limits[5]
+        cost += (_advance(state, p, n, m, current, period_s) + offset - future[k]) ** 2
+        if cost >= bound:
+            break
+    return cost, current, side, held
+
+
+@numba.njit(cache=True)
+def _planned_current(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, side: int, held: int,
+                     limits: np.ndarray, targets: np.ndarray, switches: np.ndarray, future: np.ndarray, offset: float,
+                     period_s: float) -> float:
+    """The next period's current [A] of the two-move path (see the module's docstring) with the least squared error
+    against `future` [m] (the setpoints due at the end of each period), the model run from `state` plus `offset`;
+    side and held: the relay's wire and the periods since it switched."""
+    best, first = np.inf, current
+    middle, trial = np.empty_like(state), np.empty_like(state)
+    for target in targets:
+        for switch in switches:
+            middle[:] = state
+            before, now, now_side, now_held = _run_path(middle, p, n, m, current, side, held, target, range(switch),
+                                                        limits, future, offset, period_s, best)
+            if before >= best:
+                continue
+            for second in targets:
+                trial[:] = middle
+                cost = before + _run_path(trial, p, n, m, now, now_side, now_held, second,
+                                          range(switch, future.size), limits, future, offset, period_s,
+                                          best - before)[0]
+                if cost < best:
+                    best = cost
+                    first = _toward(current, target, side, limits[0], limits[1], limits[2], limits[3],
+                                    held >= limits[4])
+    return first
+
+
+class TwoMovePlanner(Compensator):
+    """The two-move planner while the setpoint moves, the package's law otherwise (see the module's docstring); a
+    model other than the two-wire one, or no measurement, runs the package's law. bench_positioning.drive tells it
+    the setpoints ahead through `foresee`."""
+
+    horizon_s = 5.0
+    offset_filter_s = 0.5  # the time constant [s] of the filter on the measured minus the model's position
+    switch_s = (0.4, 1.0, 2.0)  # when the second move may start [s]
+    targets = 41  # the current targets tried over the limit, for each move
+    switch_weight = 0.0  # a relay switch in a path costs this many relay holds of 1 % of the reach span's error
+
+    def reset(self) -> None:
+        super().reset()
+        self._setpoint_at: Callable[[float], float] | None = None
+        self._offset_m: float | None = None
+        self._last_setpoint_m: float | None = None
+        self._planning = False
+
+    def foresee(self, setpoint_at: Callable[[float], float]) -> None:
+        """setpoint_at(s): the setpoint [m] s seconds beyond the preview's."""
+        self._setpoint_at = setpoint_at
+
+    def _follows(self, setpoint_m: float, dt_s: float) -> bool:
+        """Whether the setpoint [m] moved since the previous command no faster than the model's lag lets the stage
+        follow (the preview's rule): the planner's turn; a held or stepped setpoint is the package law's."""
+        previous, self._last_setpoint_m = self._last_setpoint_m, setpoint_m
+        change = 0.0 if previous is None else abs(setpoint_m - previous)
+        return change > 0.0 and dt_s > 0.0 and change * self.tau_s <= dt_s * reach_span_m(self.drive)
+
+    def _follow_offset(self, measured_m: float, dt_s: float) -> None:
+        miss = float(measured_m) - self.drive.predicted_m
+        if self._offset_m is None or dt_s <= 0.0:
+            self._offset_m = miss if self._offset_m is None else self._offset_m
+            return
+        self._offset_m += (1.0 - math.exp(-dt_s / self.offset_filter_s)) * (miss - self._offset_m)
+
+    def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
+                hold_s: float | None = None, ahead_m: float | None = None) -> float:
+        if measured_m is None or not isinstance(getattr(self.drive, "stream", None), TwoWireStream):
+            return super().command(setpoint_m, measured_m, dt_s, hold_s, ahead_m)
+        if not self._follows(setpoint_m, dt_s):
+            if self._planning:  # the loop's integral takes over the planner's offset
+                self._planning = False
+                self._release_inverse()
+                self.integral_m = -(self._offset_m or 0.0) - self.kp * float(setpoint_m - measured_m)
+            current = super().command(setpoint_m, measured_m, dt_s, hold_s, ahead_m)
+            self._follow_offset(measured_m, dt_s)
+            return current
+        self._planning = True
+        self.drive.advance(self.command_a, dt_s)
+        self._looped = True
+        self._follow_offset(measured_m, dt_s)
+        step = positioning.PERIOD_S
+        count = max(2, round(self.horizon_s / step))
+        preview = self.preview_s(True)
+        future = np.array([setpoint_m if self._setpoint_at is None else self._setpoint_at(j * step - preview)
+                           for j in range(1, count + 1)])
+        stream = self.drive.stream
+        low, high = self._dead_band
+        rate = self._max_rate_a_per_s
+        hold_periods = round(RELAY_HOLD_S / step)
+        switch_cost = self.switch_weight * hold_periods * (0.01 * reach_span_m(self.drive)) ** 2
+        limits = np.array([rate * step, rate * RELAY_HOLD_S, low, high, hold_periods, switch_cost])
+        switches = np.array([min(count - 1, max(1, round(s / step))) for s in self.switch_s])
+        side = self._relay_side or _wire(self.command_a) or 1
+        planned = _planned_current(stream._state, stream._p, stream._n, stream._m, self.command_a, side,
+                                   round(self._relay_held_s / step), limits,
+                                   np.linspace(-self._limit, self._limit, self.targets), switches, future,
+                                   self._offset_m, step)
+        self._setpoint.moves(setpoint_m, dt_s)
+        self.command_a = self._relay_held(planned, dt_s)
+        return self.command_a
+
+
 def variant(base: type[Compensator], **settings: float) -> type[Compensator]:
     """A subclass of base with its class settings changed."""
     return type(base.__name__, (base,), dict(settings))
@@ -197,7 +356,10 @@ LAWS = [positioning.LOOP_PREVIEW] + [
     for lead in (0.6, 1.2)] + [
     positioning.Mode(f"model-predictive, {horizon:g} tau", True, True, core=variant(ModelPredictive,
                                                                                    horizon_taus=horizon))
-    for horizon in (0.2, 0.3)]
+    for horizon in (0.2, 0.3)] + [
+    positioning.Mode(f"two-move planner{' with switch cost' if weight else ''}, {horizon:g} s", True, True,
+                     core=variant(TwoMovePlanner, horizon_s=horizon, switch_weight=weight))
+    for horizon, weight in ((4.0, 0.0), (5.0, 0.0), (5.0, 4.0))]
 
 
 def cell(run: positioning.Tracked) -> str:
@@ -205,13 +367,13 @@ def cell(run: positioning.Tracked) -> str:
     return f"{run.rms_pct:.2f} / {run.max_pct:.1f} ({run.change_p99_pct:.1f}{settled})"
 
 
-def summary(found: dict[str, dict[str, list[positioning.Tracked]]]) -> list[str]:
+def summary(found: dict[str, dict[str, list[positioning.Tracked]]], laws: list[positioning.Mode]) -> list[str]:
     """Per shape and law, over the plants: the mean RMS and the plants within issue 49's 1 % (moving shapes), or the
     worst settled hold and the plants whose every hold is within 0.2 % (held levels); the largest p99 change."""
-    lines = ["| setpoint | " + " | ".join(law.name for law in LAWS) + " |", "|---" * (len(LAWS) + 1) + "|"]
+    lines = ["| setpoint | " + " | ".join(law.name for law in laws) + " |", "|---" * (len(laws) + 1) + "|"]
     for shape in SHAPES:
         cells = []
-        for index in range(len(LAWS)):
+        for index in range(len(laws)):
             runs = [by_shape[shape][index] for by_shape in found.values()]
             chatter = max(run.change_p99_pct for run in runs)
             if shape.startswith("held levels"):
@@ -230,29 +392,33 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--plants", default=",".join(positioning.PLANTS))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--only", default="", help="run only the laws whose name holds this text, beside the default")
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "candidate_laws.md")
     args = parser.parse_args()
     names = positioning.plant_names(parser, args.plants)
+    laws = [LAWS[0]] + [law for law in LAWS[1:] if args.only in law.name]
+    if len(laws) == 1:
+        parser.error(f"no candidate law's name holds {args.only!r}")
     started = time.perf_counter()
     forms = positioning.shapes(args.seed)
-    header = ("| plant | setpoint | " + " | ".join(law.name for law in LAWS) + " |\n" + "|---" * (len(LAWS) + 2) + "|")
+    header = ("| plant | setpoint | " + " | ".join(law.name for law in laws) + " |\n" + "|---" * (len(laws) + 2) + "|")
     print(header, flush=True)
     lines, found = [header], {}
     for name in names:
         identified = positioning.identify(name, args.seed)
         found[name] = {}
         for shape in SHAPES:
-            runs = found[name][shape] = [positioning.track(identified, shape, forms[shape], law) for law in LAWS]
+            runs = found[name][shape] = [positioning.track(identified, shape, forms[shape], law) for law in laws]
             line = f"| {name} | {shape} | " + " | ".join(cell(run) for run in runs) + " |"
             print(line, flush=True)
             lines.append(line)
-    over = summary(found)
+    over = summary(found, laws)
     print("\n" + "\n".join(over))
     body = ("Each cell: RMS / max error [% of the stroke] (the current's p99 change, % of the limit; held levels: the "
             "worst hold's settled error, %).\n\n" + "\n".join(lines) + "\n\nOver the plants: the mean RMS and the "
             "plants within 1 % (held levels: the worst settled hold and the plants with every hold within 0.2 %), and "
             "the largest p99 change:\n\n" + "\n".join(over) + "\n\n"
-            + positioning.run_note(f"--plants {args.plants} --seed {args.seed}", started,
+            + positioning.run_note(f"--plants {args.plants} --seed {args.seed} --only {args.only!r}", started,
                                    "bench_candidate_laws.py"))
     positioning.write(args.out, "Issue 49's candidate laws against the PI loop with the preview", body)
 

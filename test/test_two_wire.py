@@ -278,6 +278,7 @@ def test_the_gpi_model_file_still_reads_as_a_gpi(tmp_path):
     ("bench/bench_exact_model.py", ["--shapes", "sine 50 s,odd"], "unknown shape 'odd'"),
     ("bench/bench_exact_model.py", ["--seed", "-1"], "--seed must be 0 or more"),
     ("bench/bench_exact_model.py", ["--workers", "0"], "--workers must be from 1 to 16"),
+    ("bench/bench_candidate_laws.py", ["--only", "no such law"], "no candidate law's name holds 'no such law'"),
 ])
 def test_the_second_stage_scripts_refuse_bad_arguments_in_one_line(script, arguments, message):
     """The second stage's script and the benchmarks on its plants end in one line, their results files untouched."""
