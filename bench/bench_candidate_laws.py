@@ -298,11 +298,12 @@ class TwoMovePlanner(Compensator):
         return change > 0.0 and dt_s > 0.0 and change * self.tau_s <= dt_s * reach_span_m(self.drive)
 
     def _follow_offset(self, measured_m: float, dt_s: float) -> None:
+        """The measured position [m] less the model's, through a first-order filter of offset_filter_s."""
         miss = float(measured_m) - self.drive.predicted_m
-        if self._offset_m is None or dt_s <= 0.0:
-            self._offset_m = miss if self._offset_m is None else self._offset_m
-            return
-        self._offset_m += (1.0 - math.exp(-dt_s / self.offset_filter_s)) * (miss - self._offset_m)
+        if self._offset_m is None:
+            self._offset_m = miss
+        elif dt_s > 0.0:
+            self._offset_m += (1.0 - math.exp(-dt_s / self.offset_filter_s)) * (miss - self._offset_m)
 
     def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
                 hold_s: float | None = None, ahead_m: float | None = None) -> float:
