@@ -18,14 +18,13 @@ Compensator, and none is in the package: each lost somewhere (bench/README.md, p
   a first-order filter of 1 s), comes nearest the setpoints due over that horizon (the least sum of squares; 41
   currents over the limit, then 11 around the best), then the package's rate limit and relay hold; no PI loop;
 - two-move planner (horizon): while the setpoint moves, no faster than the model's lag lets the stage follow, the
-  current path
-  with the least squared error between the setpoints due over the horizon and the two-wire model's run plus the
-  measured offset (through a first-order filter of 0.5 s): a first target for the current, then after 0.4, 1 or
-  2 s a second one, each reached at the package's rate limit (the dead band crossed at once; the other wire only
-  after the relay's hold, then up to the package's hand-over jump at once), 41 targets over the limit for each;
-  its first step is commanded as planned (the relay's hold kept); with a switch cost, each relay switch in a
-  path costs four relay holds' worth of an error of 1 % of the model's reach span; while the setpoint holds or steps, the package's
-  law, its integral taken from the planner's offset when the planner lets go.
+  current path with the least squared error between the setpoints due over the horizon and the two-wire model's
+  run plus the measured offset (through a first-order filter of 0.5 s): a first target for the current, then after
+  0.4, 1 or 2 s a second one, each reached at the package's rate limit (the dead band crossed at once; the other
+  wire only after the relay's hold, then up to the package's hand-over jump at once), 41 targets over the limit for
+  each; its first step is commanded as planned (the relay's hold kept); with a switch cost, each relay switch in a
+  path costs four relay holds' worth of an error of 1 % of the model's reach span; while the setpoint holds or
+  steps, the package's law, its integral taken from the planner's offset when the planner lets go.
 
 Prints the table and writes it to bench/results/candidate_laws.md (--out); 14-17 minutes on two cores without the
 planners, each planner 20-27 minutes more (one process; `--only "planner, 5 s"`: the default and that law alone).
@@ -105,7 +104,38 @@ class TwoDegreesOfFreedom(Compensator):
         return _within(feedforward + kp * error + self.feedback_integral_a, 0.0, self._limit)
 
 
-class HandOverLead(Compensator):
+class Foreseeing(Compensator):
+    """A candidate law that bench_positioning.drive tells the setpoints ahead through `foresee`, and that follows the
+    measured position's offset from its model's."""
+
+    offset_filter_s = 1.0  # the time constant [s] of the filter on the measured minus the model's position
+
+    def reset(self) -> None:
+        super().reset()
+        self._setpoint_at: Callable[[float], float] | None = None
+        self._offset_m: float | None = None
+
+    def foresee(self, setpoint_at: Callable[[float], float]) -> None:
+        """setpoint_at(s): the setpoint [m] s seconds beyond the preview's."""
+        self._setpoint_at = setpoint_at
+
+    def _future_m(self, setpoint_m: float, count: int, step_s: float) -> np.ndarray:
+        """The setpoints [m] due at the end of each of the next `count` periods of step_s [s] (the one now when no
+        setpoint ahead is told)."""
+        preview = self.preview_s(True)
+        return np.array([setpoint_m if self._setpoint_at is None else self._setpoint_at(j * step_s - preview)
+                         for j in range(1, count + 1)])
+
+    def _follow_offset(self, measured_m: float, dt_s: float) -> None:
+        """The measured position [m] less the model's, through a first-order filter of offset_filter_s."""
+        miss = float(measured_m) - self.drive.predicted_m
+        if self._offset_m is None:
+            self._offset_m = miss
+        elif dt_s > 0.0:
+            self._offset_m += (1.0 - math.exp(-dt_s / self.offset_filter_s)) * (miss - self._offset_m)
+
+
+class HandOverLead(Foreseeing):
     """The inverse driven towards the setpoint lead_s beyond the preview while that one wants the other wire (see the
     module's docstring); bench_positioning.drive tells it the setpoints ahead through `foresee`."""
 
@@ -113,13 +143,8 @@ class HandOverLead(Compensator):
 
     def reset(self) -> None:
         super().reset()
-        self._setpoint_at: Callable[[float], float] | None = None
         self._early = False
         self._further: float | None = None
-
-    def foresee(self, setpoint_at: Callable[[float], float]) -> None:
-        """setpoint_at(s): the setpoint [m] s seconds beyond the preview's."""
-        self._setpoint_at = setpoint_at
 
     def _side_for(self, target_m: float) -> int:
         horizon = lead_horizon_s(self.tau_s, self._lead_limit)
@@ -144,21 +169,11 @@ class HandOverLead(Compensator):
         return self._further if self._further is not None and ahead is not None and chosen == ahead else chosen
 
 
-class ModelPredictive(Compensator):
+class ModelPredictive(Foreseeing):
     """A move-blocked model-predictive law over a two-wire model (see the module's docstring); another model, or no
     measurement, runs the package's law. bench_positioning.drive tells it the setpoints ahead through `foresee`."""
 
     horizon_taus = 1.0  # the horizon, in the model's tau
-    offset_filter_s = 1.0  # the time constant [s] of the filter on the measured minus the model's output
-
-    def reset(self) -> None:
-        super().reset()
-        self._setpoint_at: Callable[[float], float] | None = None
-        self._offset_m: float | None = None
-
-    def foresee(self, setpoint_at: Callable[[float], float]) -> None:
-        """setpoint_at(s): the setpoint [m] s seconds beyond the preview's."""
-        self._setpoint_at = setpoint_at
 
     def _cost(self, current_a: float, future_m: np.ndarray, step_s: float) -> float:
         stream = self.drive.stream
@@ -174,16 +189,9 @@ class ModelPredictive(Compensator):
             return super().command(setpoint_m, measured_m, dt_s, hold_s, ahead_m)
         self.drive.advance(self.command_a, dt_s)
         self._looped = True
-        miss = measured_m - self.drive.predicted_m
-        if self._offset_m is None:
-            self._offset_m = miss
-        elif dt_s > 0.0:
-            self._offset_m += (1.0 - math.exp(-dt_s / self.offset_filter_s)) * (miss - self._offset_m)
+        self._follow_offset(measured_m, dt_s)
         step = positioning.PERIOD_S
-        count = max(1, round(self.horizon_taus * self.tau_s / step))
-        preview = self.preview_s(True)
-        future = np.array([setpoint_m if self._setpoint_at is None else self._setpoint_at(j * step - preview)
-                           for j in range(1, count + 1)])
+        future = self._future_m(setpoint_m, max(1, round(self.horizon_taus * self.tau_s / step)), step)
         limit = self._limit
         grid = np.linspace(-limit, limit, MPC_GRID)
         best = min(grid, key=lambda current: self._cost(current, future, step))
@@ -211,9 +219,9 @@ def _toward(current: float, target: float, side: int, step_a: float, jump_a: flo
         else:
             moved = min(end, jump_a) if end > 0.0 else max(end, -jump_a)
             return high + moved if moved > 0.0 else low + moved
-    if end == start:
-        return current if end != 0.0 else (min(high, max(low, target)) if wanted == 0 else (high if side > 0 else low))
-    moved = min(start + step_a, end) if end > start else max(start - step_a, end)
+    if end == start and end != 0.0:
+        return current
+    moved = end if end == start else (min(start + step_a, end) if end > start else max(start - step_a, end))
     if moved != 0.0:
         return high + moved if moved > 0.0 else low + moved
     return min(high, max(low, target)) if wanted == 0 else (high if side > 0 else low)
@@ -225,7 +233,8 @@ def _run_path(state: np.ndarray, p: np.ndarray, n: int, m: int, current: float, 
               bound: float) -> tuple[float, float, int, int]:
     """Run the model (state, changed in place) along the path towards `target` over `steps` (indices of `future`
     [m], the setpoints due); (the squared error summed, the current at the end [A], the relay's side, the periods
-    since its last switch); stops once the sum passes `bound`. limits: (step_a, jump_a, low, high, hold periods)."""
+    since its last switch); stops once the sum passes `bound`. limits: (step_a, jump_a, low, high, hold periods,
+    a switch's cost [m^2])."""
     cost = 0.0
     for k in steps:
         current = _toward(current, target, side, limits[0], limits[1], limits[2], limits[3], held >= limits[4])
@@ -250,6 +259,7 @@ def _planned_current(state: np.ndarray, p: np.ndarray, n: int, m: int, current: 
     best, first = np.inf, current
     middle, trial = np.empty_like(state), np.empty_like(state)
     for target in targets:
+        step = _toward(current, target, side, limits[0], limits[1], limits[2], limits[3], held >= limits[4])
         for switch in switches:
             middle[:] = state
             before, now, now_side, now_held = _run_path(middle, p, n, m, current, side, held, target, range(switch),
@@ -262,13 +272,11 @@ def _planned_current(state: np.ndarray, p: np.ndarray, n: int, m: int, current: 
                                           range(switch, future.size), limits, future, offset, period_s,
                                           best - before)[0]
                 if cost < best:
-                    best = cost
-                    first = _toward(current, target, side, limits[0], limits[1], limits[2], limits[3],
-                                    held >= limits[4])
+                    best, first = cost, step
     return first
 
 
-class TwoMovePlanner(Compensator):
+class TwoMovePlanner(Foreseeing):
     """The two-move planner while the setpoint moves, the package's law otherwise (see the module's docstring); a
     model other than the two-wire one, or no measurement, runs the package's law. bench_positioning.drive tells it
     the setpoints ahead through `foresee`."""
@@ -281,14 +289,8 @@ class TwoMovePlanner(Compensator):
 
     def reset(self) -> None:
         super().reset()
-        self._setpoint_at: Callable[[float], float] | None = None
-        self._offset_m: float | None = None
         self._last_setpoint_m: float | None = None
         self._planning = False
-
-    def foresee(self, setpoint_at: Callable[[float], float]) -> None:
-        """setpoint_at(s): the setpoint [m] s seconds beyond the preview's."""
-        self._setpoint_at = setpoint_at
 
     def _follows(self, setpoint_m: float, dt_s: float) -> bool:
         """Whether the setpoint [m] moved since the previous command no faster than the model's lag lets the stage
@@ -296,14 +298,6 @@ class TwoMovePlanner(Compensator):
         previous, self._last_setpoint_m = self._last_setpoint_m, setpoint_m
         change = 0.0 if previous is None else abs(setpoint_m - previous)
         return change > 0.0 and dt_s > 0.0 and change * self.tau_s <= dt_s * reach_span_m(self.drive)
-
-    def _follow_offset(self, measured_m: float, dt_s: float) -> None:
-        """The measured position [m] less the model's, through a first-order filter of offset_filter_s."""
-        miss = float(measured_m) - self.drive.predicted_m
-        if self._offset_m is None:
-            self._offset_m = miss
-        elif dt_s > 0.0:
-            self._offset_m += (1.0 - math.exp(-dt_s / self.offset_filter_s)) * (miss - self._offset_m)
 
     def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
                 hold_s: float | None = None, ahead_m: float | None = None) -> float:
@@ -323,9 +317,7 @@ class TwoMovePlanner(Compensator):
         self._follow_offset(measured_m, dt_s)
         step = positioning.PERIOD_S
         count = max(2, round(self.horizon_s / step))
-        preview = self.preview_s(True)
-        future = np.array([setpoint_m if self._setpoint_at is None else self._setpoint_at(j * step - preview)
-                           for j in range(1, count + 1)])
+        future = self._future_m(setpoint_m, count, step)
         stream = self.drive.stream
         low, high = self._dead_band
         rate = self._max_rate_a_per_s
