@@ -69,6 +69,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "test"))
 
 import antagonistic_plant as physical  # noqa: E402
+from record_results import machine  # noqa: E402
 
 from sma_stage.cli import family_list  # noqa: E402
 from sma_stage.control import Compensator  # noqa: E402
@@ -556,7 +557,7 @@ def reversal_scan(names: list[str], seed: int, speeds: list[float]) -> list[str]
 def run_note(arguments: str, started: float, script: str = "bench_positioning.py") -> str:
     """The line under a table: the command with its arguments, the seconds since `started` and the date."""
     return (f"`.venv/bin/python bench/{script} {arguments}`: {time.perf_counter() - started:.0f} s on "
-            f"{time.strftime('%Y-%m-%d')}; deterministic for a seed.")
+            f"{time.strftime('%Y-%m-%d')} ({machine()}); deterministic for a seed on one machine.")
 
 
 def write(out: Path, title: str, body: str) -> None:

@@ -29,6 +29,17 @@ class _Tee(io.TextIOBase):
         self.terminal.flush()
 
 
+def machine() -> str:
+    """The CPUs a run had, with their model where Linux names it ("2 CPUs, AMD EPYC"): figures that are the same
+    from run to run on one machine may differ on another CPU, whose compiled code and BLAS round differently."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            model = next((line.split(":", 1)[1].strip() for line in info if line.startswith("model name")), "")
+    except OSError:
+        model = ""
+    return f"{os.cpu_count()} CPUs" + (f", {model}" if model else "")
+
+
 def results_path(script: str, name: str | None = None) -> Path:
     """bench/results/<name>.md, by default the script's name without bench_."""
     return RESULTS / f"{name or Path(script).stem.removeprefix('bench_')}.md"
@@ -57,7 +68,7 @@ def recorded(script: str, name: str | None = None) -> Iterator[None]:
 def _write(script: str, name: str | None, started: str, output: str) -> None:
     path = results_path(script, name)
     command = " ".join([".venv/bin/python", f"bench/{Path(script).name}", *sys.argv[1:]])
-    text = f"# {Path(script).name}\n\n`{command}` ({started}, {os.cpu_count()} CPUs)\n\n```\n{output.rstrip()}\n```\n"
+    text = f"# {Path(script).name}\n\n`{command}` ({started}, {machine()})\n\n```\n{output.rstrip()}\n```\n"
     path.parent.mkdir(exist_ok=True)
     staging = path.with_suffix(".md.tmp")
     staging.write_text(text)

@@ -279,6 +279,9 @@ def test_the_gpi_model_file_still_reads_as_a_gpi(tmp_path):
     ("bench/bench_exact_model.py", ["--seed", "-1"], "--seed must be 0 or more"),
     ("bench/bench_exact_model.py", ["--workers", "0"], "--workers must be from 1 to 16"),
     ("bench/bench_candidate_laws.py", ["--only", "no such law"], "no candidate law's name holds 'no such law'"),
+    ("bench/bench_rounding.py", ["--variants", "nope"], "unknown variant 'nope'"),
+    ("bench/bench_rounding.py", ["--copies", "0"], "--copies must be from 1 to 50, got 0"),
+    ("bench/bench_rounding.py", ["--eps", "nan"], "--eps must be above 0 and at most 1e-3, got nan"),
 ])
 def test_the_second_stage_scripts_refuse_bad_arguments_in_one_line(script, arguments, message):
     """The second stage's script and the benchmarks on its plants end in one line, their results files untouched."""
