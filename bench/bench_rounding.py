@@ -8,7 +8,7 @@ such copies, it may flip from one machine to another. Prints the runs and a summ
 bench/results/rounding.md.
 
     .venv/bin/python bench/bench_rounding.py [--variants nominal,thin_wires] [--copies 5] [--eps 1e-14]
-        [--record paper|designed]
+        [--record paper|designed] [--design-seed 0]
 """
 
 from __future__ import annotations
@@ -57,7 +57,8 @@ def arguments() -> argparse.Namespace:
     parser.add_argument("--copies", type=int, default=5, help="perturbed copies beside the record as made")
     parser.add_argument("--eps", type=float, default=1e-14, help="the perturbation's relative size")
     parser.add_argument("--record", choices=("paper", "designed"), default="paper",
-                        help="the paper's identification record, or the probe and the design from it (seed 0)")
+                        help="the paper's identification record, or the probe and the design from it")
+    parser.add_argument("--design-seed", type=int, default=0, help="with --record designed: the design's seed")
     args = parser.parse_args()
     variants = args.variants.split(",")
     unknown = [name for name in variants if name not in physical.VARIANTS]
@@ -67,13 +68,16 @@ def arguments() -> argparse.Namespace:
         parser.exit(2, f"bench_rounding.py: --copies must be from 1 to 50, got {args.copies}\n")
     if not 0.0 < args.eps <= 1e-3:
         parser.exit(2, f"bench_rounding.py: --eps must be above 0 and at most 1e-3, got {args.eps!r}\n")
+    if args.design_seed < 0:
+        parser.exit(2, f"bench_rounding.py: --design-seed must be 0 or more, got {args.design_seed}\n")
     return args
 
 
 def main(args: argparse.Namespace) -> None:
     variants = args.variants.split(",")
     shape_names = list(physical.VALIDATION_SHAPES)
-    print(f"record: {args.record}; copies: {args.copies}, eps {args.eps:g}; families {','.join(FAMILIES)}\n")
+    design = f" (design seed {args.design_seed})" if args.record == "designed" else ""
+    print(f"record: {args.record}{design}; copies: {args.copies}, eps {args.eps:g}; families {','.join(FAMILIES)}\n")
     print("| variant | copy | model chosen | " + " | ".join(f"{name} RMS / max %" for name in shape_names)
           + " | worst RMS % |")
     print("|---" * (4 + len(shape_names)) + "|")
@@ -81,7 +85,7 @@ def main(args: argparse.Namespace) -> None:
     for variant in variants:
         stage = physical.VARIANTS[variant]
         shapes = validation_records(stage, 0)
-        record = (designed_record(stage, 0, 0)[:3] if args.record == "designed"
+        record = (designed_record(stage, 0, args.design_seed)[:3] if args.record == "designed"
                   else physical.records(stage, 0)["identification"])
         choices, worst, largest = [], [], []
         for copy in range(-1, args.copies):
@@ -105,5 +109,6 @@ def main(args: argparse.Namespace) -> None:
 
 if __name__ == "__main__":
     checked = arguments()
-    with recorded(__file__, "rounding" if checked.record == "paper" else "rounding_designed"):
+    name = "rounding" if checked.record == "paper" else "rounding_designed"
+    with recorded(__file__, name + (f"_seed{checked.design_seed}" if checked.design_seed else "")):
         main(checked)

@@ -282,6 +282,7 @@ def test_the_gpi_model_file_still_reads_as_a_gpi(tmp_path):
     ("bench/bench_rounding.py", ["--variants", "nope"], "unknown variant 'nope'"),
     ("bench/bench_rounding.py", ["--copies", "0"], "--copies must be from 1 to 50, got 0"),
     ("bench/bench_rounding.py", ["--eps", "nan"], "--eps must be above 0 and at most 1e-3, got nan"),
+    ("bench/bench_rounding.py", ["--record", "designed", "--design-seed", "-1"], "--design-seed must be 0 or more"),
 ])
 def test_the_second_stage_scripts_refuse_bad_arguments_in_one_line(script, arguments, message):
     """The second stage's script and the benchmarks on its plants end in one line, their results files untouched."""
