@@ -5,7 +5,7 @@ each identified as `diagnose` does (every family, 4 rounds, validated on the pap
 not changed) and the chosen model scored from rest on the three validation shapes of bench/bench_experiment.py.
 Another CPU rounds the same arithmetic differently (its compiled kernels and BLAS): where a choice flips under
 such copies, it may flip from one machine to another. Prints the runs and a summary per plant and writes them to
-bench/results/rounding.md.
+bench/results/rounding.md (--record designed: rounding_designed.md, _seedN.md for a design seed N above 0).
 
     .venv/bin/python bench/bench_rounding.py [--variants nominal,thin_wires] [--copies 5] [--eps 1e-14]
         [--record paper|designed] [--design-seed 0]
@@ -74,7 +74,6 @@ def arguments() -> argparse.Namespace:
 
 
 def main(args: argparse.Namespace) -> None:
-    variants = args.variants.split(",")
     shape_names = list(physical.VALIDATION_SHAPES)
     design = f" (design seed {args.design_seed})" if args.record == "designed" else ""
     print(f"record: {args.record}{design}; copies: {args.copies}, eps {args.eps:g}; families {','.join(FAMILIES)}\n")
@@ -82,7 +81,7 @@ def main(args: argparse.Namespace) -> None:
           + " | worst RMS % |")
     print("|---" * (4 + len(shape_names)) + "|")
     summary = []
-    for variant in variants:
+    for variant in args.variants.split(","):
         stage = physical.VARIANTS[variant]
         shapes = validation_records(stage, 0)
         record = (designed_record(stage, 0, args.design_seed)[:3] if args.record == "designed"
