@@ -108,6 +108,7 @@ def main(args: argparse.Namespace) -> None:
 
 if __name__ == "__main__":
     checked = arguments()
-    name = "rounding" if checked.record == "paper" else "rounding_designed"
-    with recorded(__file__, name + (f"_seed{checked.design_seed}" if checked.design_seed else "")):
+    name = "rounding" if checked.record == "paper" else "rounding_designed" + (
+        f"_seed{checked.design_seed}" if checked.design_seed else "")
+    with recorded(__file__, name):
         main(checked)
