@@ -24,10 +24,14 @@ Compensator, and none is in the package: each lost somewhere (bench/README.md, p
   wire only after the relay's hold, then up to the package's hand-over jump at once), 41 targets over the limit for
   each; its first step is commanded as planned (the relay's hold kept); with a switch cost, each relay switch in a
   path costs four relay holds' worth of an error of 1 % of the model's reach span; while the setpoint holds or
-  steps, the package's law, its integral taken from the planner's offset when the planner lets go.
+  steps, the package's law, its integral taken from the planner's offset when the planner lets go;
+- loop gains scaled (factor): the PI loop's kp and ki from `imc_gains` times the factor, all else the default;
+- setpoint shaped (taus): the setpoint moved towards the one commanded at most the model's reach span in that many
+  of its taus per second (a step becomes a ramp; no preview while it ramps, the shaped setpoint being unknown ahead).
 
-Prints the table and writes it to bench/results/candidate_laws.md (--out); 14-17 minutes on two cores without the
-planners, each planner 20-27 minutes more (one process; `--only "planner, 5 s"`: the default and that law alone).
+Prints the table and writes it to bench/results/candidate_laws.md (--out); one process. `--only TEXT` runs the default
+and the laws whose name holds TEXT alone: 4-5 minutes for `--only "loop gains"` or `"setpoint shaped"` (two laws each), 20-27 minutes for one
+planner (`--only "planner, 5 s"`).
 
     .venv/bin/python bench/bench_candidate_laws.py [--plants simulator,nominal,...] [--seed 0] [--only TEXT]
         [--out FILE]
@@ -335,6 +339,35 @@ class TwoMovePlanner(Foreseeing):
         return self.command_a
 
 
+class ScaledGains(Compensator):
+    """The package's law with its PI gains times gain_factor."""
+
+    gain_factor = 1.5
+
+    def __init__(self, model: object, max_current_a: float = 5.0, kp: float = 0.0, ki: float = 0.0,
+                 **settings: object) -> None:
+        super().__init__(model, max_current_a, kp=kp * self.gain_factor, ki=ki * self.gain_factor, **settings)
+
+
+class ShapedSetpoint(Compensator):
+    """The package's law on a setpoint rate-limited to the model's reach span per `taus` of its tau."""
+
+    taus = 4.0
+
+    def reset(self) -> None:
+        super().reset()
+        self._shaped_m: float | None = None
+
+    def command(self, setpoint_m: float, measured_m: float | None = None, dt_s: float = 0.0,
+                hold_s: float | None = None, ahead_m: float | None = None) -> float:
+        rate = reach_span_m(self.drive) / (self.taus * max(self.tau_s, positioning.PERIOD_S))
+        previous = setpoint_m if self._shaped_m is None else self._shaped_m
+        self._shaped_m = min(previous + rate * dt_s, max(previous - rate * dt_s, setpoint_m))
+        if ahead_m is not None and self._shaped_m != setpoint_m:
+            ahead_m = self._shaped_m
+        return super().command(self._shaped_m, measured_m, dt_s, hold_s, ahead_m)
+
+
 def variant(base: type[Compensator], **settings: float) -> type[Compensator]:
     """A subclass of base with its class settings changed."""
     return type(base.__name__, (base,), dict(settings))
@@ -352,7 +385,11 @@ LAWS = [positioning.LOOP_PREVIEW] + [
     for horizon in (0.2, 0.3)] + [
     positioning.Mode(f"two-move planner{' with switch cost' if weight else ''}, {horizon:g} s", True, True,
                      core=variant(TwoMovePlanner, horizon_s=horizon, switch_weight=weight))
-    for horizon, weight in ((4.0, 0.0), (5.0, 0.0), (5.0, 4.0))]
+    for horizon, weight in ((4.0, 0.0), (5.0, 0.0), (5.0, 4.0))] + [
+    positioning.Mode(f"loop gains scaled, {factor:g} times", True, True, core=variant(ScaledGains, gain_factor=factor))
+    for factor in (1.5, 2.0)] + [
+    positioning.Mode(f"setpoint shaped, {taus:g} tau", True, True, core=variant(ShapedSetpoint, taus=taus))
+    for taus in (4.0, 8.0)]
 
 
 def cell(run: positioning.Tracked) -> str:

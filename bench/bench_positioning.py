@@ -276,6 +276,7 @@ class Tracked:
     change_p99_pct: float
     settled_mean_pct: float | None = None
     settled_max_pct: float | None = None
+    holds_within: int = 0  # held levels: the holds settled within HELD_TARGET_PCT
     model_rms_pct: float = float("nan")  # the model's own RMS error on the currents the plant was given
 
 
@@ -351,7 +352,8 @@ def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.nd
     per_hold, settled_n = int(HOLD_S / PERIOD_S), int(SETTLED_S / PERIOD_S)
     ends = [(hold + 1) * per_hold - 1 for hold in range(HOLDS)]  # error[j] is the position against setpoint j + 1
     settled = [abs(float(np.mean(error[end - settled_n:end]))) for end in ends]
-    return replace(result, settled_mean_pct=float(np.mean(settled)), settled_max_pct=float(np.max(settled)))
+    return replace(result, settled_mean_pct=float(np.mean(settled)), settled_max_pct=float(np.max(settled)),
+                   holds_within=sum(value <= HELD_TARGET_PCT for value in settled))
 
 
 def model_miss_pct(identified: Identified, positions: np.ndarray, currents: np.ndarray) -> float:
@@ -479,8 +481,8 @@ def target_pct(mode: Mode) -> float:
 
 def summary(found: dict[str, dict[str, list[Tracked]]]) -> list[str]:
     """Over the plants (found: plant -> shape -> runs in MODES' order), per shape and mode: the RMS range [%] and
-    how many plants are within target_pct; for held levels the settled means' range and how many plants settled every
-    hold within HELD_TARGET_PCT; last, the rows whose current's p99 change exceeds CHANGE_TARGET_PCT."""
+    how many plants are within target_pct; for held levels the settled means' range, how many plants settled every
+    hold within HELD_TARGET_PCT and how many holds of all did; last, the rows whose current's p99 change exceeds CHANGE_TARGET_PCT."""
     plants = list(found)
     lines = ["| setpoint | " + " | ".join(mode.name for mode in MODES) + " |", "|---|" + "---|" * len(MODES)]
     for shape in found[plants[0]]:
@@ -494,8 +496,9 @@ def summary(found: dict[str, dict[str, list[Tracked]]]) -> list[str]:
             else:
                 means = [run.settled_mean_pct for run in runs]
                 within = sum(run.settled_max_pct <= HELD_TARGET_PCT for run in runs)
+                holds = sum(run.holds_within for run in runs)
                 cells.append(f"settled {min(means):.2f}-{max(means):.2f}; {within} of {len(runs)} with every hold within "
-                             f"{HELD_TARGET_PCT:g} %")
+                             f"{HELD_TARGET_PCT:g} % ({holds} of {HOLDS * len(runs)} holds)")
         lines.append(f"| {shape} | " + " | ".join(cells) + " |")
     over: dict[str, int] = {}
     for by_shape in found.values():
