@@ -11,8 +11,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
 
@@ -216,56 +215,20 @@ class Terminated(KeyboardInterrupt):
     worker processes ended, its output folder as it was."""
 
 
-RAISE_AGAIN_S = 0.01  # how soon an interrupt Python dropped in a callback is raised again [s]
-_lost_interrupts: list[type[KeyboardInterrupt]] = []
-
-
 def _raise_terminated(number: int, frame: object) -> None:
     raise Terminated
-
-
-def _raise_lost_interrupt(number: int, frame: object) -> None:
-    if _lost_interrupts:
-        raise _lost_interrupts.pop()
-
-
-@contextmanager
-def _interrupts_reach_the_command() -> Iterator[None]:
-    """SIGTERM raises Terminated where the command is. An interrupt that lands in a callback whose exceptions
-    Python prints and drops (logging's lock release after a fork, a finalizer) is raised again RAISE_AGAIN_S later
-    (SIGALRM), so that a run never ignores Ctrl-C or SIGTERM and goes on to write its output."""
-    previous_hook = sys.unraisablehook
-
-    def keep_interrupts(unraisable: object) -> None:
-        value = getattr(unraisable, "exc_value", None)
-        if isinstance(value, KeyboardInterrupt):
-            _lost_interrupts.append(type(value))
-            signal.setitimer(signal.ITIMER_REAL, RAISE_AGAIN_S)
-        else:
-            previous_hook(unraisable)
-
-    previous_term = signal.signal(signal.SIGTERM, _raise_terminated)
-    previous_alarm = signal.signal(signal.SIGALRM, _raise_lost_interrupt)
-    sys.unraisablehook = keep_interrupts
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0.0)
-        _lost_interrupts.clear()
-        signal.signal(signal.SIGALRM, previous_alarm)
-        signal.signal(signal.SIGTERM, previous_term)
-        if sys.unraisablehook is keep_interrupts:
-            sys.unraisablehook = previous_hook
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: run one command; InputError, OSError and MemoryError become one line and exit status 2;
     Ctrl-C and SIGTERM one line and 130 or 143."""
     args = build_parser().parse_args(argv)
-    if not _in_main_thread():
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if _in_main_thread() else None
+    try:
         return _run(args)
-    with _interrupts_reach_the_command():
-        return _run(args)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def _in_main_thread() -> bool:

@@ -333,35 +333,6 @@ def test_an_interrupt_prints_one_line_whatever_its_half_built_objects_raise(inte
     assert raised == [] and capsys.readouterr().err.strip() == line
 
 
-@pytest.mark.parametrize("interrupt, line, status", [("terminated", "gpi_tool: terminated", 143),
-                                                     ("interrupted", "gpi_tool: interrupted", 130)])
-def test_an_interrupt_python_drops_in_a_callback_still_ends_the_run(interrupt, line, status, capsys):
-    """A SIGTERM landing in logging's lock release after a fork was printed as "Exception ignored" and lost:
-    the diagnosis ran on, wrote its output and ended with status 0."""
-    import argparse
-    import time
-
-    from sma_stage import cli
-
-    class RaisesWhenFreed:
-        def __del__(self):
-            raise cli.Terminated if interrupt == "terminated" else KeyboardInterrupt
-
-    ran_on = []
-
-    def handler(args):
-        RaisesWhenFreed()  # freed at once: Python drops what its finalizer raises, as in a fork's callback
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline:
-            time.sleep(0.01)
-        ran_on.append(True)
-        return {}
-
-    with cli._interrupts_reach_the_command():
-        assert cli._run(argparse.Namespace(handler=handler)) == status
-    assert ran_on == [] and capsys.readouterr().err.strip() == line
-
-
 def test_sigterm_ends_a_diagnosis_and_its_workers_as_ctrl_c_does(data, tmp_path):
     """SIGTERM used to end the main process at once and leave the forkserver, the resource tracker and both
     workers running, and a staging folder beside --out."""
