@@ -350,7 +350,6 @@ def test_sigterm_ends_a_diagnosis_and_its_workers_as_ctrl_c_does(data, tmp_path)
     while time.monotonic() < deadline and len(descendants(process.pid)) < 2:
         time.sleep(0.1)
     assert len(descendants(process.pid)) >= 2, "the workers started (gpi_tool forks them)"
-    time.sleep(1.0)  # past the forks: a signal in logging's after-fork callback is dropped by Python (CHANGELOG)
     process.send_signal(signal.SIGTERM)
     _, error = process.communicate(timeout=30)
     assert process.returncode == 143 and error.strip().endswith("gpi_tool: terminated"), error
@@ -359,6 +358,37 @@ def test_sigterm_ends_a_diagnosis_and_its_workers_as_ctrl_c_does(data, tmp_path)
     for pid in survivors:
         os.kill(pid, signal.SIGKILL)
     assert not survivors, "no process of the run left"
+    assert sorted(path.name for path in tmp_path.iterdir()) == [], "no folder and no staging folder left"
+
+
+def test_sigterm_while_the_workers_fork_ends_the_diagnosis(data, tmp_path):
+    """A SIGTERM handled in an after-fork callback (logging has one) was dropped by Python ("Exception ignored")
+    and the diagnosis ran on to status 0; here a callback sends it at every fork of the workers."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "out"
+    script = ("import os, signal, sys\n"
+              "from sma_stage.cli import main\n"
+              "def signal_here():\n"
+              "    os.kill(os.getpid(), signal.SIGTERM)\n"
+              "    sum(range(1000))\n"
+              "os.register_at_fork(after_in_parent=signal_here)\n"
+              f"sys.exit(main(['diagnose', {str(data[0])!r}, '--validate', {str(data[1])!r}, '--workers', '2', "
+              f"'--out', {str(out)!r}]))\n")
+    process = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, start_new_session=True)
+    _, error = process.communicate(timeout=60)
+    time.sleep(1.0)
+    survivors = [pid for pid in session_members(process.pid) if pid != process.pid]
+    for pid in survivors:
+        os.kill(pid, signal.SIGKILL)
+    assert process.returncode == 143 and error.strip().endswith("gpi_tool: terminated"), error
+    assert "Exception ignored" not in error
+    assert not survivors, "no worker left"
     assert sorted(path.name for path in tmp_path.iterdir()) == [], "no folder and no staging folder left"
 
 

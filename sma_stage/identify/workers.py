@@ -158,7 +158,9 @@ class Workers:
             self._starting.start()
 
     def _launch(self, method: str) -> None:
-        """Create the executor (start method "fork" or "forkserver") and have each worker load the kernels."""
+        """Create the executor (start method "fork" or "forkserver") and have each worker load the kernels. While
+        this process forks, Ctrl-C and SIGTERM wait (_interrupts_held) and are raised once the executor is kept."""
+        held = _interrupts_held() if method == "fork" else None
         try:
             context = multiprocessing.get_context(method)
             if method == "forkserver":
@@ -167,10 +169,12 @@ class Workers:
                                            initargs=(self.niceness,))
             for _ in range(self.workers):
                 executor.submit(warm_up)
+            self._executor = executor
         except (OSError, RuntimeError, ValueError) as error:
             self._failure = " ".join(str(error).split()) or type(error).__name__
-            return
-        self._executor = executor
+        finally:
+            if held is not None:
+                signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
     def _started(self) -> ProcessPoolExecutor:
         """The executor, once start() has launched it (launched here if it was not)."""
@@ -217,11 +221,21 @@ def _as_in_a_worker(function: Callable[..., object], *args: object) -> object:
         return function(*args)
 
 
+INTERRUPTS = {signal.SIGINT, signal.SIGTERM}
+
+
+def _interrupts_held() -> set[signal.Signals]:
+    """Block Ctrl-C and SIGTERM in this thread until the returned mask is set again: a Python handler run in an
+    after-fork callback (logging has one) has its exception printed as "Exception ignored" and dropped."""
+    return signal.pthread_sigmask(signal.SIG_BLOCK, INTERRUPTS)
+
+
 def _worker_setup(niceness: int) -> None:
     """A worker process: SIGTERM ends it (a forked worker does not keep gpi_tool's handler, which would have it
-    raise instead of ending when the pool is terminated), BLAS on one thread, and `niceness` levels below the
-    process that started it."""
+    raise instead of ending when the pool is terminated; nor the parent's block of it while it forked), BLAS on one
+    thread, and `niceness` levels below the process that started it."""
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, INTERRUPTS)
     one_blas_thread()
     lower_priority(niceness=niceness)
 
