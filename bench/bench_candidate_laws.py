@@ -27,7 +27,10 @@ Compensator, and none is in the package: each lost somewhere (bench/README.md, p
   steps, the package's law, its integral taken from the planner's offset when the planner lets go;
 - loop gains scaled (factor): the PI loop's kp and ki from `imc_gains` times the factor, all else the default;
 - setpoint shaped (taus): the setpoint moved towards the one commanded at most the model's reach span in that many
-  of its taus per second (a step becomes a ramp; no preview while it ramps, the shaped setpoint being unknown ahead).
+  of its taus per second (a step becomes a ramp; no preview while it ramps, the shaped setpoint being unknown ahead);
+- preview longer (factor): the setpoint that many times `preview_s()` ahead, all else the default;
+- lag inverted on the preview: the preview plus the central difference's inverse of the lag the lead leaves (its
+  docstring).
 
 Prints the table and writes it to bench/results/candidate_laws.md (--out); one process. `--only TEXT` runs the default
 and the laws whose name holds TEXT alone: 4-5 minutes for `--only "loop gains"` or `"setpoint shaped"` (two laws each), 20-27 minutes for one
@@ -43,6 +46,7 @@ import argparse
 import math
 import sys
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
@@ -368,6 +372,44 @@ class ShapedSetpoint(Compensator):
         return super().command(self._shaped_m, measured_m, dt_s, hold_s, ahead_m)
 
 
+class LongerPreview(Compensator):
+    """The package's law told the setpoint `factor` times its preview_s() ahead."""
+
+    factor = 1.5
+
+    def preview_s(self, feedback: bool = True) -> float:
+        return self.factor * super().preview_s(feedback)
+
+
+class LagInverted(Compensator):
+    """The package's law driven towards the preview plus `weight` (2 now - ahead - past) / 2, past the setpoint
+    preview_s() ago: with the preview, the central difference's inverse of the first-order lag tau / g the lead
+    leaves, whose gain 1 / sqrt(1 + (w tau / g)^2) the preview alone keeps; weight = 1 - the largest step of the
+    setpoint over the last two previews / its total variation there (0 on a step, near 1 on a smooth setpoint)."""
+
+    def reset(self) -> None:
+        super().reset()
+        self._aheads: deque[tuple[float, float]] = deque()
+        self._clock_s = 0.0
+
+    def _previewed(self, now: float, ahead: float | None, dt: float) -> float:
+        chosen = super()._previewed(now, ahead, dt)
+        if ahead is None:
+            self._aheads.clear()
+            return chosen
+        self._clock_s += dt
+        self._aheads.append((self._clock_s, ahead))
+        window = 2.0 * self.preview_s()
+        while self._aheads[0][0] < self._clock_s - window - 1e-9:
+            self._aheads.popleft()
+        values = np.array([value for _, value in self._aheads])
+        jumps = np.abs(np.diff(values))
+        if chosen != ahead or self._aheads[0][0] > self._clock_s - window + dt or jumps.sum() == 0.0:
+            return chosen
+        weight = 1.0 - float(jumps.max() / jumps.sum())
+        return self._bounded(ahead + weight * (2.0 * now - ahead - float(values[0])) / 2.0)
+
+
 def variant(base: type[Compensator], **settings: float) -> type[Compensator]:
     """A subclass of base with its class settings changed."""
     return type(base.__name__, (base,), dict(settings))
@@ -389,7 +431,10 @@ LAWS = [positioning.LOOP_PREVIEW] + [
     positioning.Mode(f"loop gains scaled, {factor:g} times", True, True, core=variant(ScaledGains, gain_factor=factor))
     for factor in (1.5, 2.0)] + [
     positioning.Mode(f"setpoint shaped, {taus:g} tau", True, True, core=variant(ShapedSetpoint, taus=taus))
-    for taus in (4.0, 8.0)]
+    for taus in (4.0, 8.0)] + [
+    positioning.Mode(f"preview longer, {factor:g} times", True, True, core=variant(LongerPreview, factor=factor))
+    for factor in (1.5, 2.0)] + [
+    positioning.Mode("lag inverted on the preview", True, True, core=LagInverted)]
 
 
 def cell(run: positioning.Tracked) -> str:
