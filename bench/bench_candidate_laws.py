@@ -389,25 +389,25 @@ class LagInverted(Compensator):
 
     def reset(self) -> None:
         super().reset()
-        self._aheads: deque[tuple[float, float]] = deque()
-        self._clock_s = 0.0
+        self._aheads: deque[tuple[float, float]] = deque()  # (the setpoint's clock [s], the setpoint ahead [m])
 
     def _previewed(self, now: float, ahead: float | None, dt: float) -> float:
         chosen = super()._previewed(now, ahead, dt)
         if ahead is None:
             self._aheads.clear()
             return chosen
-        self._clock_s += dt
-        self._aheads.append((self._clock_s, ahead))
+        clock = self._setpoint.now_s + dt  # the setpoint's motion is told this dt after the preview
+        self._aheads.append((clock, ahead))
         window = 2.0 * self.preview_s()
-        while self._aheads[0][0] < self._clock_s - window - 1e-9:
+        while self._aheads[0][0] < clock - window - 1e-9:
             self._aheads.popleft()
-        values = np.array([value for _, value in self._aheads])
-        jumps = np.abs(np.diff(values))
-        if chosen != ahead or self._aheads[0][0] > self._clock_s - window + dt or jumps.sum() == 0.0:
+        if chosen != ahead or self._aheads[0][0] > clock - window + dt:
+            return chosen
+        jumps = np.abs(np.diff([value for _, value in self._aheads]))
+        if jumps.sum() == 0.0:
             return chosen
         weight = 1.0 - float(jumps.max() / jumps.sum())
-        return self._bounded(ahead + weight * (2.0 * now - ahead - float(values[0])) / 2.0)
+        return self._bounded(ahead + weight * (2.0 * now - ahead - self._aheads[0][1]) / 2.0)
 
 
 def variant(base: type[Compensator], **settings: float) -> type[Compensator]:

@@ -336,7 +336,6 @@ def test_an_interrupt_prints_one_line_whatever_its_half_built_objects_raise(inte
 def test_sigterm_ends_a_diagnosis_and_its_workers_as_ctrl_c_does(data, tmp_path):
     """SIGTERM used to end the main process at once and leave the forkserver, the resource tracker and both
     workers running, and a staging folder beside --out."""
-    import os
     import signal
     import subprocess
     import sys
@@ -351,24 +350,14 @@ def test_sigterm_ends_a_diagnosis_and_its_workers_as_ctrl_c_does(data, tmp_path)
         time.sleep(0.1)
     assert len(descendants(process.pid)) >= 2, "the workers started (gpi_tool forks them)"
     process.send_signal(signal.SIGTERM)
-    _, error = process.communicate(timeout=30)
-    assert process.returncode == 143 and error.strip().endswith("gpi_tool: terminated"), error
-    time.sleep(1.0)
-    survivors = [pid for pid in session_members(process.pid) if pid != process.pid]
-    for pid in survivors:
-        os.kill(pid, signal.SIGKILL)
-    assert not survivors, "no process of the run left"
-    assert sorted(path.name for path in tmp_path.iterdir()) == [], "no folder and no staging folder left"
+    assert_terminated_cleanly(process, 30.0, tmp_path)
 
 
 def test_sigterm_while_the_workers_fork_ends_the_diagnosis(data, tmp_path):
     """A SIGTERM handled in an after-fork callback (logging has one) was dropped by Python ("Exception ignored")
     and the diagnosis ran on to status 0; here a callback sends it at every fork of the workers."""
-    import os
-    import signal
     import subprocess
     import sys
-    import time
 
     out = tmp_path / "out"
     script = ("import os, signal, sys\n"
@@ -381,15 +370,26 @@ def test_sigterm_while_the_workers_fork_ends_the_diagnosis(data, tmp_path):
               f"'--out', {str(out)!r}]))\n")
     process = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, start_new_session=True)
-    _, error = process.communicate(timeout=60)
+    error = assert_terminated_cleanly(process, 60.0, tmp_path)
+    assert "Exception ignored" not in error
+
+
+def assert_terminated_cleanly(process, timeout_s: float, tmp_path) -> str:
+    """Wait for a gpi_tool run started in its own session; assert it ended by SIGTERM (143, its one line) and left
+    no process (killed here if it did) and nothing in tmp_path; its stderr."""
+    import os
+    import signal
+    import time
+
+    _, error = process.communicate(timeout=timeout_s)
     time.sleep(1.0)
     survivors = [pid for pid in session_members(process.pid) if pid != process.pid]
     for pid in survivors:
         os.kill(pid, signal.SIGKILL)
     assert process.returncode == 143 and error.strip().endswith("gpi_tool: terminated"), error
-    assert "Exception ignored" not in error
-    assert not survivors, "no worker left"
+    assert not survivors, "no process of the run left"
     assert sorted(path.name for path in tmp_path.iterdir()) == [], "no folder and no staging folder left"
+    return error
 
 
 def descendants(pid: int) -> list[int]:
