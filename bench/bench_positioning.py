@@ -12,6 +12,7 @@ and how many plants are within issue 49's targets.
     .venv/bin/python bench/bench_positioning.py [--plants simulator,nominal,...] [--out FILE] [--seed 0]
         [--record paper|designed|paper+tracking] [--validate-levels] [--families gpi,...]
     .venv/bin/python bench/bench_positioning.py --reversal-speeds 1,2,3,4 [--plants ...]
+    .venv/bin/python bench/bench_positioning.py --where [--plants ...] [--seed 0]
 
 With --families, the families `diagnose` compares (default: `gpi_tool diagnose`'s); naming two_wire_compact writes
 the table to ..._compact.md unless --out says where.
@@ -33,6 +34,12 @@ user to do (`diagnose --validate`; bench/results/positioning_levels.md, or posit
 With --reversal-speeds, instead: the held levels in the PI loop (without and with the preview) at each value of the
 compensator's REVERSAL_SPEED (the integral's gain while a held setpoint's reversals go through the linear path), one
 table written to bench/results/reversal_speed.md (--out).
+
+With --where, instead: where the law the node runs by default (the PI loop with the preview) misses on the 20, 50
+and 100 s sines: per plant and sine, the error and the model's own miss (model_miss) by the time since the relay
+last switched wire, and the current's p99 change with and without the commands that switch it (two a period: on
+the 20 s sine 2 % of the commands, so the p99 of every command is a switch's jump), one table written to
+bench/results/positioning_where.md (--out).
 
 Plants: the package's stage simulator; every variant of test/antagonistic_plant.py (a second physical stage the
 model code did not make: Preisach hysterons per wire, stress coupling, detwinning, a lever); and three variants
@@ -334,17 +341,21 @@ def drive(identified: Identified, form: Callable[[np.ndarray], np.ndarray], mode
     return positions, currents, wanted[:steps + 1]
 
 
+def scored(identified: Identified, positions: np.ndarray, currents: np.ndarray,
+           wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A `drive`'s scored part, after the lead-in: (the error of each position against the setpoint due when it is
+    measured [% of the stroke], the current's change into each command from the one before [% of the limit])."""
+    low, high = identified.stroke_m
+    lead_in = int(LEAD_IN_S / PERIOD_S)
+    error = 100.0 * (positions - wanted[1:positions.size + 1])[lead_in:] / (high - low)
+    return error, 100.0 * np.abs(np.diff(currents[lead_in - 1:])) / MAX_CURRENT_A
+
+
 def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.ndarray], mode: Mode) -> Tracked:
     """`drive` through one shape for its duration_s, scored (see the module's docstring)."""
     learning_period = repeat_period_s(shape) if mode.learning else 0.0
     positions, currents, wanted = drive(identified, form, mode, duration_s(shape), learning_period)
-    low, high = identified.stroke_m
-    span = high - low
-    lead_in = int(LEAD_IN_S / PERIOD_S)
-    steps = positions.size
-    scored = slice(lead_in, None)
-    error = 100.0 * (positions - wanted[1:steps + 1])[scored] / span
-    change = 100.0 * np.abs(np.diff(currents[lead_in - 1:])) / MAX_CURRENT_A
+    error, change = scored(identified, positions, currents, wanted)
     result = Tracked(float(np.sqrt(np.mean(error**2))), float(np.max(np.abs(error))), float(np.percentile(change, 99)),
                      model_rms_pct=model_miss_pct(identified, positions, currents))
     if not shape.startswith("held levels"):
@@ -356,11 +367,12 @@ def track(identified: Identified, shape: str, form: Callable[[np.ndarray], np.nd
                    holds_within=sum(value <= HELD_TARGET_PCT for value in settled))
 
 
-def model_miss_pct(identified: Identified, positions: np.ndarray, currents: np.ndarray) -> float:
-    """The identified model's RMS error [% of the stroke] on the scored positions [m] of a `drive`, the model run from
-    its carried state on the currents [A] the plant was given (the compensator's first, then `currents`), each
-    sample read as the plant's own records are (SAMPLE_AFTER_CURRENT): what the model gets wrong of the stage on that
-    drive, whatever the law."""
+def model_miss(identified: Identified, positions: np.ndarray, currents: np.ndarray) -> np.ndarray:
+    """The identified model's error [% of the stroke] on each scored position [m] of a `drive` (all after the
+    lead-in but, where the plant samples before its current, the last), the model run from its carried state on
+    the currents [A] the plant was given (the compensator's first, then `currents`), each sample read as the
+    plant's own records are (SAMPLE_AFTER_CURRENT): what the model gets wrong of the stage on that drive, whatever
+    the law."""
     model = identified.model
     applied = applied_currents(identified, currents)
     times = identified.record_end_s + PERIOD_S * np.arange(1, applied.size + 1)
@@ -368,8 +380,12 @@ def model_miss_pct(identified: Identified, positions: np.ndarray, currents: np.n
     offset = 1 if identified.plant.SAMPLE_AFTER_CURRENT else 2  # positions[k] against predicted[k + offset]
     scored = slice(int(LEAD_IN_S / PERIOD_S), applied.size - offset)
     low, high = identified.stroke_m
-    miss = positions[scored] - predicted[scored.start + offset:]
-    return float(100.0 * np.sqrt(np.mean(miss**2)) / (high - low))
+    return 100.0 * (positions[scored] - predicted[scored.start + offset:]) / (high - low)
+
+
+def model_miss_pct(identified: Identified, positions: np.ndarray, currents: np.ndarray) -> float:
+    """The identified model's RMS error [% of the stroke] on the scored positions of a `drive` (model_miss)."""
+    return float(np.sqrt(np.mean(model_miss(identified, positions, currents) ** 2)))
 
 
 def held_at(plant: SimulatorPlant | PhysicalPlant, current_a: float, position_m: float,
@@ -445,6 +461,8 @@ def stall_floor_pct(period_s: float, found: dict[str, float]) -> float:
     return float(np.sqrt(speed**2 * stalls / (12.0 * period_s)))
 
 
+WHERE_PERIODS_S = (20.0, 50.0, 100.0)  # --where: the sines whose error is placed
+SINCE_SWITCH_BINS_S = (0.0, 2.0, 5.0, 10.0, math.inf)  # --where: the bins of the time since the relay's last switch
 HEADER = ("| plant | model (held-out RMS %) | setpoint | RMS / max %: " + "; ".join(m.name for m in MODES)
           + " | settled mean / max %: same order | p99 current change %: same order |\n|---|---|---|---|---|---|")
 
@@ -557,6 +575,61 @@ def reversal_scan(names: list[str], seed: int, speeds: list[float]) -> list[str]
     return lines
 
 
+def since_switch_s(currents: np.ndarray) -> np.ndarray:
+    """For each position of a `drive` (measured at the end of command k), the time [s] since the relay last switched
+    wire (the current's sign changed, 0 A switching nothing): a switch at command j gives (k - j + 1) PERIOD_S;
+    inf before the first switch."""
+    since, side, switched = np.empty(currents.size), 0.0, -math.inf
+    for k, current in enumerate(currents):
+        if current != 0.0 and np.sign(current) != side:
+            switched = k if side != 0.0 else switched
+            side = np.sign(current)
+        since[k] = (k - switched + 1) * PERIOD_S
+    return since
+
+
+def where_cells(error: np.ndarray, miss: np.ndarray, since: np.ndarray) -> str:
+    """Per bin of SINCE_SWITCH_BINS_S (the last one with the positions before the first switch): the share of the scored time and of the squared error [%], the RMS error and
+    the model's RMS miss there [% of the stroke] (miss one shorter than error where the plant samples first)."""
+    cells, total = [], float(np.sum(error**2))
+    for start, end in zip(SINCE_SWITCH_BINS_S[:-1], SINCE_SWITCH_BINS_S[1:], strict=True):
+        inside = (since >= start) & ((since < end) | (end == math.inf))  # the last bin: before any switch too
+        if not inside.any():
+            cells.append("-")
+            continue
+        missed = miss[inside[:miss.size]]
+        cells.append(f"{100.0 * inside.mean():.0f} / {100.0 * np.sum(error[inside]**2) / total:.0f} / "
+                     f"{np.sqrt(np.mean(error[inside]**2)):.2f} / {np.sqrt(np.mean(missed**2)):.2f}")
+    return "; ".join(cells)
+
+
+def where_errors(names: list[str], seed: int) -> list[str]:
+    """Where the default law's error falls on the sines of WHERE_PERIODS_S: per plant and sine, the RMS error, the
+    relay's switches per period, the error and the model's miss by the time since the relay's last switch
+    (where_cells), and the current's p99 change with and without the commands that switch the relay."""
+    bins = "; ".join(f"{start:g}-{end:g}" if math.isfinite(end) else f"from {start:g}"
+                     for start, end in zip(SINCE_SWITCH_BINS_S[:-1], SINCE_SWITCH_BINS_S[1:], strict=True))
+    lines = ["| plant | setpoint | RMS % | relay switches per period | by the time since the relay's last switch "
+             f"[s] ({bins}): share of the time % / of the squared error % / RMS error % / the model's RMS miss % | "
+             "p99 current change %: every command; without those that switch the relay |", "|---|---|---|---|---|---|"]
+    print(lines[0] + "\n" + lines[1], flush=True)
+    lead_in = int(LEAD_IN_S / PERIOD_S)
+    for name in names:
+        identified = identify(name, seed)
+        for period in WHERE_PERIODS_S:
+            positions, currents, wanted = drive(identified, lambda s, p=period: np.sin(2.0 * np.pi * s / p),
+                                                LOOP_PREVIEW, duration_s(f"sine {period:g} s"))
+            error, change = scored(identified, positions, currents, wanted)
+            since = since_switch_s(currents)[lead_in:]
+            switches = np.isclose(since, PERIOD_S)
+            per_period = switches.sum() * period / (PERIOD_S * since.size)
+            cells = where_cells(error, model_miss(identified, positions, currents), since)
+            lines.append(f"| {name} | sine {period:g} s | {np.sqrt(np.mean(error**2)):.2f} | {per_period:.1f} | {cells} | "
+                         f"{np.percentile(change, 99):.1f}; {np.percentile(change[~switches], 99):.1f} |")
+            print(lines[-1], flush=True)
+    return lines
+
+
 def run_note(arguments: str, started: float, script: str = "bench_positioning.py") -> str:
     """The line under a table: the command with its arguments, the seconds since `started` and the date."""
     return (f"`.venv/bin/python bench/{script} {arguments}`: {time.perf_counter() - started:.0f} s on "
@@ -592,11 +665,22 @@ def main() -> None:
     parser.add_argument("--families", type=family_list, default=FAMILIES,
                         help="the model families compared (default: gpi_tool diagnose's)")
     parser.add_argument("--reversal-speeds", help="comma-separated values of REVERSAL_SPEED: the held levels only")
+    parser.add_argument("--where", action="store_true",
+                        help="where the default law's error falls on the 20, 50 and 100 s sines, by the time since "
+                             "the relay's last switch (default out bench/results/positioning_where.md)")
     parser.add_argument("--out", help="the table's file (default bench/results/positioning.md, with --reversal-speeds "
                                       "bench/results/reversal_speed.md)")
     args = parser.parse_args()
     names = plant_names(parser, args.plants)
     started = time.perf_counter()
+    if args.where:
+        lines = where_errors(names, args.seed)
+        note = run_note(f"--where --plants {args.plants} --seed {args.seed}", started)
+        write(Path(args.out or REPO / "bench" / "results" / "positioning_where.md"),
+              "Where the default law's error falls on the sines, by the time since the relay's last switch",
+              "\n".join(lines) + "\n\n" + note + "\n")
+        print(note)
+        return
     if args.reversal_speeds:
         lines = reversal_scan(names, args.seed, [float(text) for text in args.reversal_speeds.split(",")])
         note = run_note(f"--reversal-speeds {args.reversal_speeds} --plants {args.plants} --seed {args.seed}", started)
