@@ -30,7 +30,12 @@ Compensator, and none is in the package: each lost somewhere (bench/README.md, p
   of its taus per second (a step becomes a ramp; no preview while it ramps, the shaped setpoint being unknown ahead);
 - preview longer (factor): the setpoint that many times `preview_s()` ahead, all else the default;
 - lag inverted on the preview: the preview plus the central difference's inverse of the lag the lead leaves (its
-  docstring).
+  docstring);
+- wire state estimated (tf): the default law, its inverse's two-wire model kept on the measured position by the
+  wires' temperatures (a state estimator on the model's hidden states, the estimator of issue 49's EKF-MPC
+  anchor without the MPC): after each step, the wire whose temperature moves the model's output towards the
+  measurement the most (the slope from a trial change of 0.01 A of heating) has it moved by 1 - exp(-dt / tf) of
+  the miss over that slope, at most 0.2 A of heating a step, the wire's plays following.
 
 Prints the table and writes it to bench/results/candidate_laws.md (--out); one process. `--only TEXT` runs the default
 and the laws whose name holds TEXT alone: 4-5 minutes for `--only "loop gains"` or `"setpoint shaped"` (two laws each), 20-27 minutes for one
@@ -410,6 +415,35 @@ class LagInverted(Compensator):
         return self._bounded(ahead + weight * (2.0 * now - ahead - self._aheads[0][1]) / 2.0)
 
 
+class WireStateEstimated(Compensator):
+    """The inverse's two-wire model kept on the measured position by its wires' temperatures (see the module's
+    docstring)."""
+
+    filter_s = 1.0  # the estimator's time constant [s]
+    probe = 0.01  # the temperature's trial change for the slope [A of heating]
+    most = 0.2  # the largest correction of a temperature in one step [A of heating]
+
+    def _advance_models(self, held: bool, measured: float | None, dt: float) -> None:
+        super()._advance_models(held, measured, dt)
+        stream = self.drive.stream
+        if measured is None or dt <= 0.0 or not isinstance(stream, TwoWireStream):
+            return
+        miss = measured - stream.output
+        best_slope, best_wire = 0.0, -1
+        for wire in (0, 1):
+            for sign in (1.0, -1.0):
+                trial = stream._state.copy()
+                trial[wire] += sign * self.probe
+                slope = (_advance(trial, stream._p, stream._n, stream._m, 0.0, 0.0) - stream.output) / (sign * self.probe)
+                if slope * miss * sign > 0.0 and abs(slope) > abs(best_slope):
+                    best_slope, best_wire = slope, wire
+        if best_wire < 0:
+            return
+        share = 1.0 - math.exp(-dt / self.filter_s)
+        stream._state[best_wire] += _within(share * miss / best_slope, 0.0, self.most)
+        _advance(stream._state, stream._p, stream._n, stream._m, 0.0, 0.0)
+
+
 def variant(base: type[Compensator], **settings: float) -> type[Compensator]:
     """A subclass of base with its class settings changed."""
     return type(base.__name__, (base,), dict(settings))
@@ -434,7 +468,9 @@ LAWS = [positioning.LOOP_PREVIEW] + [
     for taus in (4.0, 8.0)] + [
     positioning.Mode(f"preview longer, {factor:g} times", True, True, core=variant(LongerPreview, factor=factor))
     for factor in (1.5, 2.0)] + [
-    positioning.Mode("lag inverted on the preview", True, True, core=LagInverted)]
+    positioning.Mode("lag inverted on the preview", True, True, core=LagInverted)] + [
+    positioning.Mode(f"wire state estimated, {tf:g} s", True, True, core=variant(WireStateEstimated, filter_s=tf))
+    for tf in (1.0, 3.0)]
 
 
 def cell(run: positioning.Tracked) -> str:
