@@ -589,8 +589,9 @@ def since_switch_s(currents: np.ndarray) -> np.ndarray:
 
 
 def where_cells(error: np.ndarray, miss: np.ndarray, since: np.ndarray) -> str:
-    """Per bin of SINCE_SWITCH_BINS_S (the last one with the positions before the first switch): the share of the scored time and of the squared error [%], the RMS error and
-    the model's RMS miss there [% of the stroke] (miss one shorter than error where the plant samples first)."""
+    """Per bin of SINCE_SWITCH_BINS_S (the last one with the positions before the first switch): the share of the
+    scored time and of the squared error [%], the RMS error and the model's RMS miss there [% of the stroke] (miss
+    one shorter than error where the plant samples first)."""
     cells, total = [], float(np.sum(error**2))
     for start, end in zip(SINCE_SWITCH_BINS_S[:-1], SINCE_SWITCH_BINS_S[1:], strict=True):
         inside = (since >= start) & ((since < end) | (end == math.inf))  # the last bin: before any switch too
@@ -614,17 +615,18 @@ def where_errors(names: list[str], seed: int) -> list[str]:
              "p99 current change %: every command; without those that switch the relay |", "|---|---|---|---|---|---|"]
     print(lines[0] + "\n" + lines[1], flush=True)
     lead_in = int(LEAD_IN_S / PERIOD_S)
+    forms = shapes(seed)
     for name in names:
         identified = identify(name, seed)
         for period in WHERE_PERIODS_S:
-            positions, currents, wanted = drive(identified, lambda s, p=period: np.sin(2.0 * np.pi * s / p),
-                                                LOOP_PREVIEW, duration_s(f"sine {period:g} s"))
+            shape = f"sine {period:g} s"
+            positions, currents, wanted = drive(identified, forms[shape], LOOP_PREVIEW, duration_s(shape))
             error, change = scored(identified, positions, currents, wanted)
             since = since_switch_s(currents)[lead_in:]
             switches = np.isclose(since, PERIOD_S)
             per_period = switches.sum() * period / (PERIOD_S * since.size)
             cells = where_cells(error, model_miss(identified, positions, currents), since)
-            lines.append(f"| {name} | sine {period:g} s | {np.sqrt(np.mean(error**2)):.2f} | {per_period:.1f} | {cells} | "
+            lines.append(f"| {name} | {shape} | {np.sqrt(np.mean(error**2)):.2f} | {per_period:.1f} | {cells} | "
                          f"{np.percentile(change, 99):.1f}; {np.percentile(change[~switches], 99):.1f} |")
             print(lines[-1], flush=True)
     return lines
