@@ -12,7 +12,10 @@ Prints the table and writes it to bench/results/exact_model.md (--out); about 35
 two sines with two worker processes (the plant's bisection runs the plant some 20 times per command).
 
     .venv/bin/python bench/bench_exact_model.py [--plants nominal,...] [--shapes "sine 50 s,sine 100 s"]
-        [--seed 0] [--workers 2] [--out FILE]
+        [--seed 0] [--workers 2] [--where] [--out FILE]
+
+With --where, each run's error by the time since the relay last switched wire instead of its max and p99 change
+(bench_positioning.py --where's bins): whether what the law misses after a hand-over is the model's.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
@@ -37,6 +42,9 @@ from sma_stage.control import Compensator  # noqa: E402
 BISECTIONS = 16  # the current found to 10 A / 2^16, 0.15 mA
 SUBSTEP_S = positioning.PERIOD_S / physical.SUBSTEPS  # the physical plant's own sub-step [s]
 DEFAULT_SHAPES = ("sine 50 s", "sine 100 s")
+WHERE_CELLS = ("Each cell (--where): the RMS error [% of the stroke], then per bin of the time since the relay last "
+               "switched wire (0-2; 2-5; 5-10; from 10 s, and before the first switch): the share of the time % / of "
+               "the squared error % / the RMS error % / the identified model's RMS miss on the currents given %.")
 
 
 def _position(stage: object) -> float:
@@ -95,8 +103,20 @@ def exact_law(stage: object) -> type[Compensator]:
     return ExactModel
 
 
-def plant_rows(name: str, shapes: list[str], seed: int) -> list[str]:
-    """One row per setpoint of one plant: the law with the identified model, then with the exact one."""
+def where_cell(identified: positioning.Identified, shape: str, mode: positioning.Mode, seed: int) -> str:
+    """The RMS error [%] of one drive, then its error by the time since the relay's last switch (bench_positioning's
+    where_cells; the miss there is the identified model's on the currents given)."""
+    positions, currents, wanted = positioning.drive(identified, positioning.shapes(seed)[shape], mode,
+                                                    positioning.duration_s(shape))
+    error, _ = positioning.scored(identified, positions, currents, wanted)
+    since = positioning.since_switch_s(currents)[int(positioning.LEAD_IN_S / positioning.PERIOD_S):]
+    cells = positioning.where_cells(error, positioning.model_miss(identified, positions, currents), since)
+    return f"{np.sqrt(np.mean(error**2)):.2f}: {cells}"
+
+
+def plant_rows(name: str, shapes: list[str], seed: int, where: bool = False) -> list[str]:
+    """One row per setpoint of one plant: the law with the identified model, then with the exact one (with where,
+    each run's where_cell)."""
     identified = positioning.identify(name, seed)
     plant = identified.plant
     stage = plant.plant if isinstance(plant, positioning.PhysicalPlant) else plant.stage
@@ -104,9 +124,13 @@ def plant_rows(name: str, shapes: list[str], seed: int) -> list[str]:
     forms = positioning.shapes(seed)
     rows = []
     for shape in shapes:
-        runs = [positioning.track(identified, shape, forms[shape], mode) for mode in (positioning.LOOP_PREVIEW, exact)]
-        rows.append(f"| {name} | {shape} | " + " | ".join(f"{run.rms_pct:.2f} / {run.max_pct:.1f} ({run.change_p99_pct:.1f})"
-                                                         for run in runs) + " |")
+        modes = (positioning.LOOP_PREVIEW, exact)
+        if where:
+            cells = [where_cell(identified, shape, mode, seed) for mode in modes]
+        else:
+            runs = [positioning.track(identified, shape, forms[shape], mode) for mode in modes]
+            cells = [f"{run.rms_pct:.2f} / {run.max_pct:.1f} ({run.change_p99_pct:.1f})" for run in runs]
+        rows.append(f"| {name} | {shape} | " + " | ".join(cells) + " |")
     return rows
 
 
@@ -116,6 +140,9 @@ def main() -> None:
     parser.add_argument("--shapes", default=",".join(DEFAULT_SHAPES), help="comma-separated setpoint shapes")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--where", action="store_true",
+                        help="each run's error by the time since the relay's last switch (bench_positioning.py "
+                             "--where's bins) instead of its max and p99 change")
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "exact_model.md")
     args = parser.parse_args()
     names = positioning.plant_names(parser, args.plants)
@@ -129,18 +156,22 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown shape {unknown[0]!r} (known: {', '.join(known)})")
     started = time.perf_counter()
-    header = ("| plant | setpoint | PI loop, preview: RMS / max % (p99 change %) | the same, the plant as its model |\n"
+    shown = "RMS %: the error by the time since the relay's last switch" if args.where else "RMS / max % (p99 change %)"
+    header = (f"| plant | setpoint | PI loop, preview: {shown} | the same, the plant as its model |\n"
               "|---|---|---|---|")
     print(header, flush=True)
     with ProcessPoolExecutor(args.workers) as pool:
-        found = list(pool.map(plant_rows, names, [shapes] * len(names), [args.seed] * len(names)))
+        found = list(pool.map(plant_rows, names, [shapes] * len(names), [args.seed] * len(names),
+                              [args.where] * len(names)))
     lines = [row for rows in found for row in rows]
     print("\n".join(lines))
-    note = positioning.run_note(f'--plants {args.plants} --shapes "{args.shapes}" --seed {args.seed}', started,
+    where = " --where" if args.where else ""
+    note = positioning.run_note(f'--plants {args.plants} --shapes "{args.shapes}" --seed {args.seed}{where}', started,
                                 "bench_exact_model.py")
+    explained = (WHERE_CELLS if args.where else
+                 "Each cell: RMS / max error [% of the stroke] (the current's p99 change, % of the limit).")
     positioning.write(args.out, "The package's control law with an exact model",
-                      "Each cell: RMS / max error [% of the stroke] (the current's p99 change, % of the limit).\n\n"
-                      + header + "\n" + "\n".join(lines) + "\n\n" + note + "\n")
+                      explained + "\n\n" + header + "\n" + "\n".join(lines) + "\n\n" + note + "\n")
     print(note)
 
 
