@@ -25,6 +25,7 @@ import copy
 import math
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -103,14 +104,11 @@ def exact_law(stage: object) -> type[Compensator]:
     return ExactModel
 
 
-def where_cell(identified: positioning.Identified, shape: str, mode: positioning.Mode, seed: int) -> str:
+def where_cell(identified: positioning.Identified, shape: str, form: Callable[[np.ndarray], np.ndarray],
+               mode: positioning.Mode) -> str:
     """The RMS error [%] of one drive, then its error by the time since the relay's last switch (bench_positioning's
-    where_cells; the miss there is the identified model's on the currents given)."""
-    positions, currents, wanted = positioning.drive(identified, positioning.shapes(seed)[shape], mode,
-                                                    positioning.duration_s(shape))
-    error, _ = positioning.scored(identified, positions, currents, wanted)
-    since = positioning.since_switch_s(currents)[int(positioning.LEAD_IN_S / positioning.PERIOD_S):]
-    cells = positioning.where_cells(error, positioning.model_miss(identified, positions, currents), since)
+    `placed`; the miss there is the identified model's on the currents given)."""
+    error, _, _, cells = positioning.placed(identified, shape, form, mode)
     return f"{np.sqrt(np.mean(error**2)):.2f}: {cells}"
 
 
@@ -126,7 +124,7 @@ def plant_rows(name: str, shapes: list[str], seed: int, where: bool = False) -> 
     for shape in shapes:
         modes = (positioning.LOOP_PREVIEW, exact)
         if where:
-            cells = [where_cell(identified, shape, mode, seed) for mode in modes]
+            cells = [where_cell(identified, shape, forms[shape], mode) for mode in modes]
         else:
             runs = [positioning.track(identified, shape, forms[shape], mode) for mode in modes]
             cells = [f"{run.rms_pct:.2f} / {run.max_pct:.1f} ({run.change_p99_pct:.1f})" for run in runs]

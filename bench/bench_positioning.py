@@ -604,6 +604,16 @@ def where_cells(error: np.ndarray, miss: np.ndarray, since: np.ndarray) -> str:
     return "; ".join(cells)
 
 
+def placed(identified: Identified, shape: str, form: Callable[[np.ndarray], np.ndarray],
+           mode: Mode) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """`drive` through one shape for its duration_s, scored, and each scored position's time since the relay's last
+    switch: (error [%], the current's change [%], since_switch_s [s], where_cells)."""
+    positions, currents, wanted = drive(identified, form, mode, duration_s(shape))
+    error, change = scored(identified, positions, currents, wanted)
+    since = since_switch_s(currents)[int(LEAD_IN_S / PERIOD_S):]
+    return error, change, since, where_cells(error, model_miss(identified, positions, currents), since)
+
+
 def where_errors(names: list[str], seed: int) -> list[str]:
     """Where the default law's error falls on the sines of WHERE_PERIODS_S: per plant and sine, the RMS error, the
     relay's switches per period, the error and the model's miss by the time since the relay's last switch
@@ -614,18 +624,14 @@ def where_errors(names: list[str], seed: int) -> list[str]:
              f"[s] ({bins}): share of the time % / of the squared error % / RMS error % / the model's RMS miss % | "
              "p99 current change %: every command; without those that switch the relay |", "|---|---|---|---|---|---|"]
     print(lines[0] + "\n" + lines[1], flush=True)
-    lead_in = int(LEAD_IN_S / PERIOD_S)
     forms = shapes(seed)
     for name in names:
         identified = identify(name, seed)
         for period in WHERE_PERIODS_S:
             shape = f"sine {period:g} s"
-            positions, currents, wanted = drive(identified, forms[shape], LOOP_PREVIEW, duration_s(shape))
-            error, change = scored(identified, positions, currents, wanted)
-            since = since_switch_s(currents)[lead_in:]
+            error, change, since, cells = placed(identified, shape, forms[shape], LOOP_PREVIEW)
             switches = np.isclose(since, PERIOD_S)
             per_period = switches.sum() * period / (PERIOD_S * since.size)
-            cells = where_cells(error, model_miss(identified, positions, currents), since)
             lines.append(f"| {name} | {shape} | {np.sqrt(np.mean(error**2)):.2f} | {per_period:.1f} | {cells} | "
                          f"{np.percentile(change, 99):.1f}; {np.percentile(change[~switches], 99):.1f} |")
             print(lines[-1], flush=True)
