@@ -12,7 +12,10 @@ Compensator, and none is in the package: each lost somewhere (bench/README.md, p
 - hand-over lead (s): when the setpoint that many seconds beyond the preview wants the other wire, the inverse is
   driven towards it until the preview's setpoint wants that wire too (not on a step: between the two setpoints it
   moves no faster than the model's lag lets the stage follow, the preview's own rule): the relay switches earlier,
-  against the dead time of the wire taking over;
+  against the dead time of the wire taking over; with the model's dead time, the lead is the time the two-wire
+  model's wire taking over needs at the full current to heat from its temperature now to its transformation's onset
+  (2 widths below its centre, 1.5 with the compact onset, shifted by the position's and the other wire's pulls), at
+  most its tau: the lead from the model instead of a number;
 - model-predictive (horizon): the current, held over the horizon (a fraction of the model's tau, in control periods),
   whose run of the two-wire model from its state now, plus the measured position's offset from the model (through
   a first-order filter of 1 s), comes nearest the setpoints due over that horizon (the least sum of squares; 41
@@ -66,7 +69,7 @@ import bench_positioning as positioning  # noqa: E402
 from sma_stage.control import Compensator  # noqa: E402
 from sma_stage.control.compensator import RELAY_HOLD_S, _wire, _within  # noqa: E402
 from sma_stage.control.drives import lead_horizon_s, reach_span_m  # noqa: E402
-from sma_stage.model.two_wire import TwoWireStream, _advance  # noqa: E402
+from sma_stage.model.two_wire import COMPACT_ONSET, TENSION_COUPLING, TwoWireStream, _advance, _shares  # noqa: E402
 
 MPC_GRID, MPC_REFINE = 41, 11  # the currents the model-predictive law tries, over the limit and then around the best
 SHAPES = ("sine 50 s", "sine 100 s", "sine 250 s", "paper's validation", "slow ramp",
@@ -180,6 +183,32 @@ class HandOverLead(Foreseeing):
     def _previewed(self, now: float, ahead: float | None, dt: float) -> float:
         chosen = super()._previewed(now, ahead, dt)  # its step rule on the preview's own setpoint
         return self._further if self._further is not None and ahead is not None and chosen == ahead else chosen
+
+
+class HandOverDeadTime(HandOverLead):
+    """The hand-over lead with, as its lead, the model's dead time of the wire taking over (see the module's
+    docstring)."""
+
+    onset_widths = {0.0: 2.0, 1.0: 1.5}  # below its centre, the widths where a wire starts to transform: tanh, compact
+
+    @property
+    def lead_s(self) -> float:  # type: ignore[override]
+        stream = getattr(self.drive, "stream", None)
+        if not isinstance(stream, TwoWireStream):
+            return HandOverLead.lead_s
+        p, state = stream._p, stream._state
+        wire = 1 if (_wire(self.command_a) or self._relay_side) > 0 else 0  # the one taking over
+        shares = _shares(state, p, stream._n)
+        sign = 1.0 if wire == 0 else -1.0
+        onset = (p[5 + wire] - self.onset_widths[p[COMPACT_ONSET]] * p[7 + wire] + sign * p[3 + wire] * state[-1]
+                 + p[TENSION_COUPLING] * shares[1 - wire])
+        full = self.max_current_a ** 2 / p[2]
+        now = state[wire]
+        if onset <= now:
+            return 0.0
+        if full <= onset:
+            return p[wire]
+        return min(p[wire], -p[wire] * math.log((full - onset) / (full - now)))
 
 
 class ModelPredictive(Foreseeing):
@@ -456,6 +485,7 @@ LAWS = [positioning.LOOP_PREVIEW] + [
                      core=variant(TwoDegreesOfFreedom, lambda_fraction=fraction)) for fraction in (0.35, 0.7)] + [
     positioning.Mode(f"hand-over lead, {lead:g} s", True, True, core=variant(HandOverLead, lead_s=lead))
     for lead in (0.6, 1.2)] + [
+    positioning.Mode("hand-over lead, the model's dead time", True, True, core=HandOverDeadTime)] + [
     positioning.Mode(f"model-predictive, {horizon:g} tau", True, True, core=variant(ModelPredictive,
                                                                                    horizon_taus=horizon))
     for horizon in (0.2, 0.3)] + [
