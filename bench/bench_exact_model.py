@@ -65,6 +65,11 @@ def _advance(stage: object, current_a: float, dt_s: float) -> float:
     return _position(stage)
 
 
+def true_stage(plant: positioning.SimulatorPlant | positioning.PhysicalPlant) -> object:
+    """The state a plant wrapper steps (the physical stage or the simulator), before its sensor."""
+    return plant.plant if isinstance(plant, positioning.PhysicalPlant) else plant.stage
+
+
 class PlantStream:
     """A copy of the plant in the place of the two-wire model's stream (the interface StreamDrive uses): `step`,
     `output`, `current_for` (the exact inverse over a hold, by bisection on the plant) and `last_clipped`."""
@@ -116,8 +121,7 @@ def plant_rows(name: str, shapes: list[str], seed: int, where: bool = False) -> 
     """One row per setpoint of one plant: the law with the identified model, then with the exact one (with where,
     each run's where_cell)."""
     identified = positioning.identify(name, seed)
-    plant = identified.plant
-    stage = plant.plant if isinstance(plant, positioning.PhysicalPlant) else plant.stage
+    stage = true_stage(identified.plant)
     exact = positioning.Mode("PI loop, preview, exact model", True, True, core=exact_law(stage))
     forms = positioning.shapes(seed)
     rows = []
