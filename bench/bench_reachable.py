@@ -5,18 +5,18 @@ those a better law could remove.
 Each plant is identified from the paper's record as bench_positioning.py does (the default law needs the model),
 then driven through a sine over 70 % of the stroke twice from its state after the record: by the default law (the
 PI loop with the preview, the identified model), and by a receding-horizon plan over the plant itself. The plan:
-every 0.2 s, the current path over the next --horizon seconds (constant on KNOT_STEPS' segments) whose run of an exact copy
-of the plant (no noise, the true position) comes nearest the setpoints due over it, found by a coordinate search
-from the last plan and from constant paths; its first step is commanded. Nothing limits its rate nor holds
-its relay: its RMS is what the stage allows, as nearly as the search finds it (an upper bound on the best RMS, not
-a law to ship). Both are scored over --seconds after LEAD_IN_S at the sine's first value, as bench_positioning.py
+every 0.2 s, the current path over the next --horizon seconds (constant on KNOT_STEPS' segments) whose run of an
+exact copy of the plant (no noise, the true position) comes nearest the setpoints due over it, found by a
+coordinate search from the last plan and from constant paths; its first step is commanded. Nothing limits its rate
+nor holds its relay, so its RMS is an upper bound on the best the stage allows with that much of the setpoint
+known ahead (the search may stop short of the best; not a law to ship). Both are scored over --seconds after LEAD_IN_S at the sine's first value, as bench_positioning.py
 scores.
 
 Prints the table and writes it to bench/results/reachable.md (--out); the plan runs the plant some 40 times over 5 s
 per command (about 5 minutes a plant for a 100 s window).
 
-    .venv/bin/python bench/bench_reachable.py [--plants nominal,...] [--periods 50] [--seconds 100] [--seed 0]
-        [--workers 2] [--out FILE]
+    .venv/bin/python bench/bench_reachable.py [--plants nominal,...] [--periods 50] [--seconds 100] [--horizon 5]
+        [--seed 0] [--workers 2] [--out FILE]
 """
 
 from __future__ import annotations
