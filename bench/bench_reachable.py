@@ -3,14 +3,15 @@ and plans the relay's hand-overs: an oracle to tell the misses of the package's 
 those a better law could remove.
 
 Each plant is identified from the paper's record as bench_positioning.py does (the default law needs the model),
-then driven through a sine over 70 % of the stroke twice from its state after the record: by the default law (the
-PI loop with the preview, the identified model), and by a receding-horizon plan over the plant itself. The plan:
-every 0.2 s, the current path over the next --horizon seconds (constant on KNOT_STEPS' segments) whose run of an
-exact copy of the plant (no noise, the true position) comes nearest the setpoints due over it, found by a
-coordinate search from the last plan and from constant paths; its first step is commanded. Nothing limits its rate
-nor holds its relay, so its RMS is an upper bound on the best the stage allows with that much of the setpoint
-known ahead (the search may stop short of the best; not a law to ship). Both are scored over --seconds after LEAD_IN_S at the sine's first value, as bench_positioning.py
-scores.
+then driven through a sine over 70 % of the stroke twice from its state after the record: by the default law (the PI
+loop with the preview, the identified model), and by a receding-horizon plan over the plant itself. The plan: every
+0.2 s, the current path over the next --horizon seconds (constant on KNOT_STEPS' segments) whose run of an exact copy
+of the plant (no noise, the true position) comes nearest the setpoints due over it, found by a coordinate search from
+the last plan and from constant paths; its first step is commanded. Nothing limits its rate nor holds its relay, so
+its RMS is an upper bound on the best the stage allows with that much of the setpoint known ahead (the search may
+stop short of the best; not a law to ship). Both are scored over --seconds after LEAD_IN_S at the sine's first value,
+as bench_positioning.py scores: the default law on the measured position it was given (its sensor's noise in it: 0.2
+% of the span on the physical plants, less on the simulator), the plan on the true one.
 
 Prints the table and writes it to bench/results/reachable.md (--out); the plan runs the plant some 40 times over 5 s
 per command (about 5 minutes a plant for a 100 s window).
