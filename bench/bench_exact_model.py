@@ -172,8 +172,7 @@ def main() -> None:
                                 "bench_exact_model.py")
     explained = (WHERE_CELLS if args.where else
                  "Each cell: RMS / max error [% of the stroke] (the current's p99 change, % of the limit).")
-    positioning.write(args.out, "The package's control law with an exact model",
-                      explained + "\n\n" + header + "\n" + "\n".join(lines) + "\n\n" + note + "\n")
+    positioning.write_table(args.out, "The package's control law with an exact model", explained, header, lines, note)
     print(note)
 
 

@@ -650,6 +650,11 @@ def write(out: Path, title: str, body: str) -> None:
     atomic_write_text(out, f"# {title}\n\n{body}")
 
 
+def write_table(out: Path, title: str, explained: str, header: str, lines: list[str], note: str) -> None:
+    """`write` a results file of one table: what each cell holds, the table's header and rows, then the run's note."""
+    write(out, title, explained + "\n\n" + header + "\n" + "\n".join(lines) + "\n\n" + note + "\n")
+
+
 def plant_names(parser: argparse.ArgumentParser, plants: str) -> list[str]:
     """The plants of a comma-separated --plants, each one of PLANTS; else the parser's one-line error (exit 2)."""
     names = plants.split(",")

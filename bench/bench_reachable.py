@@ -55,13 +55,14 @@ class Planner:
         self.bounds = (*(bound for bound in KNOT_STEPS if bound < steps), steps)
         self.knots = np.zeros(len(self.bounds) - 1)
 
-    def _run(self, stage: object, knots: np.ndarray, wanted: np.ndarray, first: int = 0) -> float:
-        """The squared error [m^2] of the path from segment `first` on, the stage's state given there."""
+    def _run(self, stage: object, knots: np.ndarray, wanted: np.ndarray, segments: range) -> tuple[float, object]:
+        """The squared error [m^2] of the path over `segments`, from the stage's state given at the first one, and a
+        copy of the stage's state at the end."""
         stage, cost = copy.deepcopy(stage), 0.0
-        for segment in range(first, knots.size):
+        for segment in segments:
             for step in range(self.bounds[segment], self.bounds[segment + 1]):
                 cost += (exact._advance(stage, float(knots[segment]), positioning.PERIOD_S) - wanted[step]) ** 2
-        return cost
+        return cost, stage
 
     def command(self, stage: object, wanted: np.ndarray) -> float:
         limit = self.max_current_a
@@ -70,32 +71,23 @@ class Planner:
                              if abs(value) <= limit and not held)]
         best, best_cost = starts[0], np.inf
         for knots in starts:
-            cost = self._run(stage, knots, wanted)
+            cost, _ = self._run(stage, knots, wanted, range(knots.size))
             if cost < best_cost:
                 best, best_cost = knots, cost
         for step_a in SEARCH_STEPS_A[1:] if held else SEARCH_STEPS_A:
             for segment in range(best.size):
-                prefix = self._prefix_cost(stage, best, wanted, segment)
+                before, there = self._run(stage, best, wanted, range(segment))
                 for sign in (1.0, -1.0):
                     trial = best.copy()
                     trial[segment] = np.clip(trial[segment] + sign * step_a, -limit, limit)
                     if trial[segment] == best[segment]:
                         continue
-                    cost = prefix[0] + self._run(prefix[1], trial, wanted, segment)
+                    cost = before + self._run(there, trial, wanted, range(segment, best.size))[0]
                     if cost < best_cost:
                         best, best_cost = trial, cost
                         break
         self.knots = best
         return float(best[0])
-
-    def _prefix_cost(self, stage: object, knots: np.ndarray, wanted: np.ndarray, segment: int) -> tuple[float, object]:
-        """The squared error [m^2] of the path's segments before `segment` and the stage's state at its start."""
-        stage, cost = copy.deepcopy(stage), 0.0
-        for step in range(self.bounds[segment]):
-            index = next(s for s in range(len(self.bounds) - 1) if self.bounds[s] <= step < self.bounds[s + 1])
-            cost += (exact._advance(stage, float(knots[index]), positioning.PERIOD_S) - wanted[step]) ** 2
-        return cost, stage
-
 
 def planned_drive(identified: positioning.Identified, form: Callable[[np.ndarray], np.ndarray],
                   seconds: float, horizon_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -180,8 +172,7 @@ def main() -> None:
                                 f"--horizon {args.horizon:g} --seed {args.seed}", started, "bench_reachable.py")
     explained = ("Each cell: RMS / max error [% of the stroke] over the scored window (the current's p99 change, % of "
                  "the limit; the share of the squared error 2-10 s after a relay switch, %).")
-    positioning.write(args.out, "What a sine's tracking can reach with the plant known exactly",
-                      explained + "\n\n" + header + "\n" + "\n".join(lines) + "\n\n" + note + "\n")
+    positioning.write_table(args.out, "What a sine's tracking can reach with the plant known exactly", explained, header, lines, note)
     print(note)
 
 
