@@ -13,11 +13,17 @@ stop short of the best; not a law to ship). Both are scored over --seconds after
 as bench_positioning.py scores: the default law on the measured position it was given (its sensor's noise in it: 0.2
 % of the span on the physical plants, less on the simulator), the plan on the true one.
 
-Prints the table and writes it to bench/results/reachable.md (--out); the plan runs the plant some 40 times over 5 s
-per command (about 5 minutes a plant for a 100 s window).
+With --learnt N it asks instead whether a plan over the horizon keeps to a path known to track: the default law
+with the learning told the sine's period (bench/bench_learning.py's runs) is run for N periods; from the plant's
+state where the last begins, one period of that period's currents replayed, of the plan with its segments offsets
+from those currents (starting from none), and of the plan alone. A plan that leaves the learnt path for a worse one
+was drawn off it by what it saw within its horizon.
+
+Prints the table and writes it to bench/results/reachable.md (reachable_learnt.md with --learnt; --out); the plan
+runs the plant some 40 times over 5 s per command (about 5 minutes a plant for a 100 s window).
 
     .venv/bin/python bench/bench_reachable.py [--plants nominal,...] [--periods 50] [--seconds 100] [--horizon 5]
-        [--seed 0] [--workers 2] [--out FILE]
+        [--learnt 0] [--seed 0] [--workers 2] [--out FILE]
 """
 
 from __future__ import annotations
@@ -39,6 +45,8 @@ sys.path.insert(0, str(REPO / "test"))
 import bench_exact_model as exact  # noqa: E402
 import bench_positioning as positioning  # noqa: E402
 
+from sma_stage.control import Compensator  # noqa: E402
+
 KNOT_STEPS = (0, 2, 5, 10, 17, 25, 35, 50, 70, 100)  # the plan's segments, in 0.2 s commands, cut at the horizon
 CONSTANT_STARTS_A = (-5.0, -1.5, 0.0, 1.5, 5.0)
 SEARCH_STEPS_A = (1.5, 0.5, 0.15)
@@ -55,39 +63,47 @@ class Planner:
         self.bounds = (*(bound for bound in KNOT_STEPS if bound < steps), steps)
         self.knots = np.zeros(len(self.bounds) - 1)
 
-    def _run(self, stage: object, knots: np.ndarray, wanted: np.ndarray, segments: range) -> tuple[float, object]:
-        """The squared error [m^2] of the path over `segments`, from the stage's state given at the first one, and a
-        copy of the stage's state at the end."""
+    def _run(self, stage: object, knots: np.ndarray, wanted: np.ndarray, segments: range,
+             base: np.ndarray) -> tuple[float, object]:
+        """The squared error [m^2] of the path (`base` plus the knots, clipped) over `segments`, from the stage's
+        state given at the first one, and a copy of the stage's state at the end."""
         stage, cost = copy.deepcopy(stage), 0.0
         for segment in segments:
             for step in range(self.bounds[segment], self.bounds[segment + 1]):
-                cost += (exact._advance(stage, float(knots[segment]), positioning.PERIOD_S) - wanted[step]) ** 2
+                current = float(np.clip(base[step] + knots[segment], -self.max_current_a, self.max_current_a))
+                cost += (exact._advance(stage, current, positioning.PERIOD_S) - wanted[step]) ** 2
         return cost, stage
 
-    def command(self, stage: object, wanted: np.ndarray) -> float:
+    def command(self, stage: object, wanted: np.ndarray, base: np.ndarray | None = None) -> float:
+        """The current [A] to command now; with `base` (a current path [A] over the horizon) the knots are offsets
+        from it, searched from none and from the last plan's."""
         limit = self.max_current_a
         held = bool(np.all(wanted == wanted[0]))  # a held setpoint (the lead-in): the last plan refined only
-        starts = [self.knots, *(np.full(self.knots.size, value) for value in CONSTANT_STARTS_A
-                             if abs(value) <= limit and not held)]
+        if base is None:
+            base = np.zeros(self.bounds[-1])
+            starts = [self.knots, *(np.full(self.knots.size, value) for value in CONSTANT_STARTS_A
+                                    if abs(value) <= limit and not held)]
+        else:
+            starts = [np.zeros(self.knots.size), self.knots]
         best, best_cost = starts[0], np.inf
         for knots in starts:
-            cost, _ = self._run(stage, knots, wanted, range(knots.size))
+            cost, _ = self._run(stage, knots, wanted, range(knots.size), base)
             if cost < best_cost:
                 best, best_cost = knots, cost
         for step_a in SEARCH_STEPS_A[1:] if held else SEARCH_STEPS_A:
             for segment in range(best.size):
-                before, there = self._run(stage, best, wanted, range(segment))
+                before, there = self._run(stage, best, wanted, range(segment), base)
                 for sign in (1.0, -1.0):
                     trial = best.copy()
                     trial[segment] = np.clip(trial[segment] + sign * step_a, -limit, limit)
                     if trial[segment] == best[segment]:
                         continue
-                    cost = before + self._run(there, trial, wanted, range(segment, best.size))[0]
+                    cost = before + self._run(there, trial, wanted, range(segment, best.size), base)[0]
                     if cost < best_cost:
                         best, best_cost = trial, cost
                         break
         self.knots = best
-        return float(best[0])
+        return float(np.clip(base[0] + best[0], -limit, limit))
 
 def planned_drive(identified: positioning.Identified, form: Callable[[np.ndarray], np.ndarray],
                   seconds: float, horizon_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -107,6 +123,65 @@ def planned_drive(identified: positioning.Identified, form: Callable[[np.ndarray
         currents[k] = planner.command(stage, wanted[k + 1:k + 1 + ahead])
         positions[k] = exact._advance(stage, currents[k], positioning.PERIOD_S)
     return positions, currents, wanted[:steps + 1]
+
+
+def learnt_period(identified: positioning.Identified, form: Callable[[np.ndarray], np.ndarray], period_s: float,
+                  periods: int) -> tuple[object, np.ndarray, np.ndarray, float]:
+    """The default law with the learning told the sine's period, run for `periods` periods as bench_learning.py
+    runs it: (a copy of the plant's state where its last period begins, that period's currents [A], the setpoints
+    [m] due after each of its commands and a horizon's more, its RMS error [% of the stroke] as measured)."""
+    positions, currents, wanted = positioning.drive(identified, form, positioning.LOOP_PREVIEW, period_s * periods,
+                                                    period_s)
+    steps = round(period_s / positioning.PERIOD_S)
+    start = int(positioning.LEAD_IN_S / positioning.PERIOD_S) + (periods - 1) * steps
+    stage = exact.true_stage(copy.deepcopy(identified.plant))
+    exact._advance(stage, Compensator(identified.model, positioning.MAX_CURRENT_A).drive.initial_current(),
+                   positioning.PERIOD_S)
+    for current in currents[:start]:
+        exact._advance(stage, float(current), positioning.PERIOD_S)
+    low, high = identified.stroke_m
+    error = positions[start:] - wanted[start + 1:]
+    ahead = np.concatenate([wanted[start + 1:], wanted[start + 1:]])  # the sine's next period is this one again
+    return stage, currents[start:], ahead, 100.0 * float(np.sqrt(np.mean(error**2))) / (high - low)
+
+
+def from_learnt(stage: object, learnt: np.ndarray, wanted: np.ndarray, horizon_s: float | None,
+                warm: bool) -> tuple[np.ndarray, np.ndarray]:
+    """One period from the stage's state (a copy): the learnt currents replayed (horizon_s None), or the Planner's,
+    its knots offsets from the learnt path (warm) or not: (true positions [m], currents [A])."""
+    stage = copy.deepcopy(stage)
+    steps = learnt.size
+    planner = Planner(positioning.MAX_CURRENT_A, horizon_s or positioning.PERIOD_S)
+    ahead = planner.bounds[-1]
+    positions, currents = np.empty(steps), np.empty(steps)
+    for k in range(steps):
+        if horizon_s is None:
+            currents[k] = learnt[k]
+        else:
+            base = learnt[(k + np.arange(ahead)) % steps] if warm else None
+            currents[k] = planner.command(stage, wanted[k:k + ahead], base)
+        positions[k] = exact._advance(stage, float(currents[k]), positioning.PERIOD_S)
+    return positions, currents
+
+
+def learnt_rows(name: str, periods_s: list[float], learnt_periods: int, horizon_s: float, seed: int) -> list[str]:
+    """One row per sine period of one plant: the learning's last period, its currents replayed on the plant, the
+    plan from that state warm from the learnt path and cold."""
+    identified = positioning.identify(name, seed)
+    low, high = identified.stroke_m
+    rows = []
+    for period in periods_s:
+        form = lambda s, p=period: np.sin(2.0 * np.pi * s / p)  # noqa: E731
+        stage, learnt, wanted, measured_pct = learnt_period(identified, form, period, learnt_periods)
+        cells = [f"{measured_pct:.2f}"]
+        for horizon, warm in ((None, False), (horizon_s, True), (horizon_s, False)):
+            positions, currents = from_learnt(stage, learnt, wanted, horizon, warm)
+            error = 100.0 * (positions - wanted[:learnt.size]) / (high - low)
+            change = 100.0 * np.abs(np.diff(currents)) / positioning.MAX_CURRENT_A
+            cells.append(f"{np.sqrt(np.mean(error**2)):.2f} ({np.percentile(change, 99):.1f})")
+        rows.append(f"| {name} | sine {period:g} s | " + " | ".join(cells) + " |")
+        print(rows[-1], flush=True)
+    return rows
 
 
 def scored_cells(identified: positioning.Identified, positions: np.ndarray, currents: np.ndarray,
@@ -143,7 +218,9 @@ def main() -> None:
     parser.add_argument("--horizon", type=float, default=5.0, help="the plan's horizon [s]")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "reachable.md")
+    parser.add_argument("--learnt", type=int, default=0,
+                        help="plan from the learning's last period after this many periods (0: from the lead-in)")
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     names = positioning.plant_names(parser, args.plants)
     try:
@@ -160,19 +237,34 @@ def main() -> None:
         parser.error(f"--seed must be 0 or more, got {args.seed}")
     if not 1 <= args.workers <= 16:
         parser.error(f"--workers must be from 1 to 16, got {args.workers}")
+    if not 0 <= args.learnt <= 50:
+        parser.error(f"--learnt must be from 0 to 50 periods, got {args.learnt}")
     started = time.perf_counter()
-    header = ("| plant | setpoint | PI loop, preview (the default law) | a plan over the plant itself |\n"
-              "|---|---|---|---|")
+    if args.learnt:
+        header = ("| plant | setpoint | the learning's last period, measured | its currents replayed | the plan from "
+                  "the learnt path | the plan alone |\n|---|---|---|---|---|---|")
+        make_rows, arguments = learnt_rows, [args.learnt] * len(names)
+        title = "What a plan over the plant does from a learnt period"
+        explained = (f"From the plant's state where the {args.learnt}th period of the default law with the learning "
+                     "begins: that period's RMS error [% of the stroke] as measured, then one period of each drive, "
+                     "RMS on the true position (the current's p99 change, % of the limit).")
+    else:
+        header = ("| plant | setpoint | PI loop, preview (the default law) | a plan over the plant itself |\n"
+                  "|---|---|---|---|")
+        make_rows, arguments = plant_rows, [args.seconds] * len(names)
+        title = "What a sine's tracking can reach with the plant known exactly"
+        explained = ("Each cell: RMS / max error [% of the stroke] over the scored window (the current's p99 change, % "
+                     "of the limit; the share of the squared error 2-10 s after a relay switch, %).")
     print(header, flush=True)
     with ProcessPoolExecutor(args.workers) as pool:
-        found = list(pool.map(plant_rows, names, [periods] * len(names), [args.seconds] * len(names),
-                              [args.horizon] * len(names), [args.seed] * len(names)))
+        found = list(pool.map(make_rows, names, [periods] * len(names), arguments, [args.horizon] * len(names),
+                              [args.seed] * len(names)))
     lines = [row for rows in found for row in rows]
     note = positioning.run_note(f"--plants {args.plants} --periods {args.periods} --seconds {args.seconds:g} "
-                                f"--horizon {args.horizon:g} --seed {args.seed}", started, "bench_reachable.py")
-    explained = ("Each cell: RMS / max error [% of the stroke] over the scored window (the current's p99 change, % of "
-                 "the limit; the share of the squared error 2-10 s after a relay switch, %).")
-    positioning.write_table(args.out, "What a sine's tracking can reach with the plant known exactly", explained, header, lines, note)
+                                f"--horizon {args.horizon:g} --seed {args.seed} --learnt {args.learnt}", started,
+                                "bench_reachable.py")
+    out = args.out or REPO / "bench" / "results" / ("reachable_learnt.md" if args.learnt else "reachable.md")
+    positioning.write_table(out, title, explained, header, lines, note)
     print(note)
 
 

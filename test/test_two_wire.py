@@ -283,6 +283,7 @@ def test_the_gpi_model_file_still_reads_as_a_gpi(tmp_path):
     ("bench/bench_reachable.py", ["--periods", "nan"], "--periods must each be from 5 to 1000 s"),
     ("bench/bench_reachable.py", ["--horizon", "0.5"], "--horizon must be from 1 to 20 s, got 0.5"),
     ("bench/bench_reachable.py", ["--seconds", "nan"], "--seconds must be from 10 to 1000, got nan"),
+    ("bench/bench_reachable.py", ["--learnt", "-1"], "--learnt must be from 0 to 50 periods, got -1"),
     ("bench/bench_rounding.py", ["--variants", "nope"], "unknown variant 'nope'"),
     ("bench/bench_rounding.py", ["--copies", "0"], "--copies must be from 1 to 50, got 0"),
     ("bench/bench_rounding.py", ["--eps", "nan"], "--eps must be above 0 and at most 1e-3, got nan"),
