@@ -129,7 +129,7 @@ def learnt_period(identified: positioning.Identified, form: Callable[[np.ndarray
                   periods: int) -> tuple[object, np.ndarray, np.ndarray, float]:
     """The default law with the learning told the sine's period, run for `periods` periods as bench_learning.py
     runs it: (a copy of the plant's state where its last period begins, that period's currents [A], the setpoints
-    [m] due after each of its commands and a horizon's more, its RMS error [% of the stroke] as measured)."""
+    [m] due after each of its commands, its RMS error [% of the stroke] as measured)."""
     positions, currents, wanted = positioning.drive(identified, form, positioning.LOOP_PREVIEW, period_s * periods,
                                                     period_s)
     steps = round(period_s / positioning.PERIOD_S)
@@ -141,25 +141,25 @@ def learnt_period(identified: positioning.Identified, form: Callable[[np.ndarray
         exact._advance(stage, float(current), positioning.PERIOD_S)
     low, high = identified.stroke_m
     error = positions[start:] - wanted[start + 1:]
-    ahead = np.concatenate([wanted[start + 1:], wanted[start + 1:]])  # the sine's next period is this one again
-    return stage, currents[start:], ahead, 100.0 * float(np.sqrt(np.mean(error**2))) / (high - low)
+    return stage, currents[start:], wanted[start + 1:], 100.0 * float(np.sqrt(np.mean(error**2))) / (high - low)
 
 
 def from_learnt(stage: object, learnt: np.ndarray, wanted: np.ndarray, horizon_s: float | None,
                 warm: bool) -> tuple[np.ndarray, np.ndarray]:
-    """One period from the stage's state (a copy): the learnt currents replayed (horizon_s None), or the Planner's,
-    its knots offsets from the learnt path (warm) or not: (true positions [m], currents [A])."""
+    """One period from the stage's state (a copy), the setpoints `wanted` [m] repeating beyond it: the learnt
+    currents replayed (horizon_s None), or the Planner's, its knots offsets from the learnt path (warm) or not:
+    (true positions [m], currents [A])."""
     stage = copy.deepcopy(stage)
     steps = learnt.size
     planner = Planner(positioning.MAX_CURRENT_A, horizon_s or positioning.PERIOD_S)
     ahead = planner.bounds[-1]
     positions, currents = np.empty(steps), np.empty(steps)
     for k in range(steps):
+        due = (k + np.arange(ahead)) % steps
         if horizon_s is None:
             currents[k] = learnt[k]
         else:
-            base = learnt[(k + np.arange(ahead)) % steps] if warm else None
-            currents[k] = planner.command(stage, wanted[k:k + ahead], base)
+            currents[k] = planner.command(stage, wanted[due], learnt[due] if warm else None)
         positions[k] = exact._advance(stage, float(currents[k]), positioning.PERIOD_S)
     return positions, currents
 
@@ -176,7 +176,7 @@ def learnt_rows(name: str, periods_s: list[float], learnt_periods: int, horizon_
         cells = [f"{measured_pct:.2f}"]
         for horizon, warm in ((None, False), (horizon_s, True), (horizon_s, False)):
             positions, currents = from_learnt(stage, learnt, wanted, horizon, warm)
-            error = 100.0 * (positions - wanted[:learnt.size]) / (high - low)
+            error = 100.0 * (positions - wanted) / (high - low)
             change = 100.0 * np.abs(np.diff(currents)) / positioning.MAX_CURRENT_A
             cells.append(f"{np.sqrt(np.mean(error**2)):.2f} ({np.percentile(change, 99):.1f})")
         rows.append(f"| {name} | sine {period:g} s | " + " | ".join(cells) + " |")
@@ -245,9 +245,9 @@ def main() -> None:
                   "the learnt path | the plan alone |\n|---|---|---|---|---|---|")
         make_rows, arguments = learnt_rows, [args.learnt] * len(names)
         title = "What a plan over the plant does from a learnt period"
-        explained = (f"From the plant's state where the {args.learnt}th period of the default law with the learning "
-                     "begins: that period's RMS error [% of the stroke] as measured, then one period of each drive, "
-                     "RMS on the true position (the current's p99 change, % of the limit).")
+        explained = (f"From the plant's state where the last of {args.learnt} periods of the default law with the "
+                     "learning begins: that period's RMS error [% of the stroke] as measured, then one period of each "
+                     "drive, RMS on the true position (the current's p99 change, % of the limit).")
     else:
         header = ("| plant | setpoint | PI loop, preview (the default law) | a plan over the plant itself |\n"
                   "|---|---|---|---|")
