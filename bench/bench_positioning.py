@@ -253,12 +253,17 @@ def designed_run(plant: SimulatorPlant | PhysicalPlant, seed: int) -> tuple[np.n
     return np.r_[probe_current, design_current], np.r_[probe_y, plant.record(design_current)]
 
 
+def sine(period_s: float) -> Callable[[np.ndarray], np.ndarray]:
+    """A sine of period_s [s] in [-1, 1] of time since it began [s]."""
+    return lambda s: np.sin(2.0 * np.pi * s / period_s)
+
+
 def shapes(seed: int) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     """Setpoint shapes in [-1, 1] of time since the shape began [s], by name."""
     draws = [np.random.default_rng(seed + 7 + draw).uniform(-1.0, 1.0, HOLDS) for draw in range(LEVEL_DRAWS)]
     held = {f"held levels {draw + 1}": (lambda s, levels=levels: levels[np.minimum((s // HOLD_S).astype(int), HOLDS - 1)])
             for draw, levels in enumerate(draws)}
-    sines = {f"sine {period:g} s": (lambda s, p=period: np.sin(2.0 * np.pi * s / p)) for period in SINE_PERIODS_S}
+    sines = {f"sine {period:g} s": sine(period) for period in SINE_PERIODS_S}
     return {**sines,
             "paper's validation": lambda s: physical.paper_validation(s) / 5.0,
             **held,

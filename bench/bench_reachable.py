@@ -135,31 +135,29 @@ def learnt_period(identified: positioning.Identified, form: Callable[[np.ndarray
     steps = round(period_s / positioning.PERIOD_S)
     start = int(positioning.LEAD_IN_S / positioning.PERIOD_S) + (periods - 1) * steps
     stage = exact.true_stage(copy.deepcopy(identified.plant))
-    exact._advance(stage, Compensator(identified.model, positioning.MAX_CURRENT_A).drive.initial_current(),
-                   positioning.PERIOD_S)
-    for current in currents[:start]:
-        exact._advance(stage, float(current), positioning.PERIOD_S)
+    initial = Compensator(identified.model, positioning.MAX_CURRENT_A).drive.initial_current()
+    replay(stage, np.concatenate([[initial], currents[:start]]))
     low, high = identified.stroke_m
     error = positions[start:] - wanted[start + 1:]
     return stage, currents[start:], wanted[start + 1:], 100.0 * float(np.sqrt(np.mean(error**2))) / (high - low)
 
 
-def from_learnt(stage: object, learnt: np.ndarray, wanted: np.ndarray, horizon_s: float | None,
-                warm: bool) -> tuple[np.ndarray, np.ndarray]:
-    """One period from the stage's state (a copy), the setpoints `wanted` [m] repeating beyond it: the learnt
-    currents replayed (horizon_s None), or the Planner's, its knots offsets from the learnt path (warm) or not:
-    (true positions [m], currents [A])."""
+def replay(stage: object, currents: np.ndarray) -> np.ndarray:
+    """Step the stage's state through the currents [A], one command each: the true positions [m] after each."""
+    return np.array([exact._advance(stage, float(current), positioning.PERIOD_S) for current in currents])
+
+
+def planned_period(stage: object, learnt: np.ndarray, wanted: np.ndarray, horizon_s: float,
+                   warm: bool) -> tuple[np.ndarray, np.ndarray]:
+    """One period of the Planner from the stage's state (a copy), the setpoints `wanted` [m] repeating beyond it, its
+    knots offsets from the learnt currents [A] (warm) or not: (true positions [m], currents [A])."""
     stage = copy.deepcopy(stage)
     steps = learnt.size
-    planner = Planner(positioning.MAX_CURRENT_A, horizon_s or positioning.PERIOD_S)
-    ahead = planner.bounds[-1]
+    planner = Planner(positioning.MAX_CURRENT_A, horizon_s)
     positions, currents = np.empty(steps), np.empty(steps)
     for k in range(steps):
-        due = (k + np.arange(ahead)) % steps
-        if horizon_s is None:
-            currents[k] = learnt[k]
-        else:
-            currents[k] = planner.command(stage, wanted[due], learnt[due] if warm else None)
+        due = (k + np.arange(planner.bounds[-1])) % steps
+        currents[k] = planner.command(stage, wanted[due], learnt[due] if warm else None)
         positions[k] = exact._advance(stage, float(currents[k]), positioning.PERIOD_S)
     return positions, currents
 
@@ -171,11 +169,12 @@ def learnt_rows(name: str, periods_s: list[float], learnt_periods: int, horizon_
     low, high = identified.stroke_m
     rows = []
     for period in periods_s:
-        form = lambda s, p=period: np.sin(2.0 * np.pi * s / p)  # noqa: E731
-        stage, learnt, wanted, measured_pct = learnt_period(identified, form, period, learnt_periods)
+        stage, learnt, wanted, measured_pct = learnt_period(identified, positioning.sine(period), period,
+                                                            learnt_periods)
         cells = [f"{measured_pct:.2f}"]
-        for horizon, warm in ((None, False), (horizon_s, True), (horizon_s, False)):
-            positions, currents = from_learnt(stage, learnt, wanted, horizon, warm)
+        runs = [(replay(copy.deepcopy(stage), learnt), learnt),
+                *(planned_period(stage, learnt, wanted, horizon_s, warm) for warm in (True, False))]
+        for positions, currents in runs:
             error = 100.0 * (positions - wanted) / (high - low)
             change = 100.0 * np.abs(np.diff(currents)) / positioning.MAX_CURRENT_A
             cells.append(f"{np.sqrt(np.mean(error**2)):.2f} ({np.percentile(change, 99):.1f})")
@@ -201,9 +200,8 @@ def plant_rows(name: str, periods_s: list[float], seconds: float, horizon_s: flo
     identified = positioning.identify(name, seed)
     rows = []
     for period in periods_s:
-        form = lambda s, p=period: np.sin(2.0 * np.pi * s / p)  # noqa: E731
-        default = positioning.drive(identified, form, positioning.LOOP_PREVIEW, seconds)
-        planned = planned_drive(identified, form, seconds, horizon_s)
+        default = positioning.drive(identified, positioning.sine(period), positioning.LOOP_PREVIEW, seconds)
+        planned = planned_drive(identified, positioning.sine(period), seconds, horizon_s)
         rows.append(f"| {name} | sine {period:g} s | {scored_cells(identified, *default)} | "
                     f"{scored_cells(identified, *planned)} |")
         print(rows[-1], flush=True)
